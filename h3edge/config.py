@@ -1,0 +1,70 @@
+"""Device profiles: ``profiles/*.toml`` loaded into typed dataclasses.
+
+Each TOML table maps onto one dataclass section of :class:`Profile`; every key must be a field
+of it (a typo is an error naming the file, table and key, not a silently ignored setting) and
+values are checked against the field's type. Missing keys keep the dataclass default, which is
+the paper's value where the paper has one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from h3edge.eval.evaluate import EvalConfig
+
+PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
+
+
+class ProfileError(ValueError):
+    """An invalid profile file: the message names the file, table and key."""
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str = "default"
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def _coerce(value, tp, where: str):
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, float, str, bool) and not (isinstance(value, tp) and not (tp is int and isinstance(value, bool))):
+        raise ProfileError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _section(cls, table: dict, where: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in table.items():
+        if key not in names:
+            raise ProfileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
+        kwargs[key] = _coerce(value, hints[key], f"{where}.{key}")
+    return cls(**kwargs)
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Load a profile file; a bare name like ``x86-cpu`` is looked up in the repository's profiles/."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = PROFILES_DIR / f"{p.name}.toml"
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ProfileError(f"{p}: profile not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ProfileError(f"{p}: {e}") from None
+    sections = {f.name: f for f in dataclasses.fields(Profile) if f.name != "name"}
+    kwargs: dict = {"name": data.pop("name", p.stem)}
+    for key, value in data.items():
+        if key not in sections:
+            raise ProfileError(f"{p}: unknown table [{key}] (known: {', '.join(sorted(sections))})")
+        if not isinstance(value, dict):
+            raise ProfileError(f"{p}: [{key}] must be a table")
+        kwargs[key] = _section(typing.get_type_hints(Profile)[key], value, f"{p}: [{key}]")
+    return Profile(**kwargs)

@@ -1,0 +1,1 @@
+"""Evaluation: the paper's metrics, ESLAM-style mesh culling, and evaluation of any renderer."""

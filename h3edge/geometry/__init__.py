@@ -1,0 +1,1 @@
+"""Shared geometry: the camera model and pixel convention, pose maths, the CPU mesh ray caster."""

@@ -1,0 +1,1 @@
+"""Simulated RGB-D data: a procedural textured room, its trajectory, sensor model and writer."""

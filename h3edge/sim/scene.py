@@ -1,0 +1,276 @@
+"""The procedural indoor room: textured planar surfaces -> one mesh, a texture atlas and a GT mesh.
+
+A room of 6 x 5 x 2.8 m (x east, y north, z up; floor at z = 0) with weak-textured walls and
+ceiling, striped surfaces (floor planks, window blinds, a tiled splash-back, book spines, a
+striped bin), photographs and tinted stone textures (posters, a brick feature wall, a rug,
+cardboard boxes) and furniture that occludes (table, bookshelf, cabinet, boxes, bin).
+``build_room(seed)`` is a pure function of its seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import trimesh
+
+from h3edge.geometry.raycast import TextureAtlas
+from h3edge.sim import textures as tx
+
+ROOM_SIZE = np.array([6.0, 5.0, 2.8])
+MIP_LEVELS = 4
+_ALIGN = 1 << (MIP_LEVELS - 1)  # atlas cells start on multiples of this, so mips stay aligned
+_LIGHT = np.array([0.35, 0.55, 0.76]) / np.linalg.norm([0.35, 0.55, 0.76])
+
+
+@dataclass
+class Quad:
+    """Planar rectangle o, o+a, o+a+b, o+b whose visible side faces a x b; texture x runs along a."""
+
+    o: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    uv0: tuple[float, float] = (0.0, 0.0)  # fraction of the surface texture at o
+    uv1: tuple[float, float] = (1.0, 1.0)  # fraction at o + a + b
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.a, self.b)
+        return n / np.linalg.norm(n)
+
+
+@dataclass
+class Surface:
+    name: str
+    texture: np.ndarray  # uint8 (h, w, 3)
+    texel: float  # metres per texel
+    quads: list[Quad]
+    kind: str  # weak | stripes | rich: the texture class it was designed as
+
+
+@dataclass
+class Box:
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+@dataclass
+class Room:
+    """The built scene: render mesh + atlas, and the solid obstacles a camera must stay out of."""
+
+    vertices: np.ndarray  # (V, 3) float32
+    faces: np.ndarray  # (F, 3) int32
+    atlas: TextureAtlas
+    face_surface: np.ndarray  # (F,) index into surface_names
+    surface_names: list[str]
+    surface_kinds: list[str]
+    obstacles: list[Box] = field(default_factory=list)
+    bounds: np.ndarray = field(default_factory=lambda: np.stack([np.zeros(3), ROOM_SIZE]))
+    gt_mesh: trimesh.Trimesh | None = None
+
+
+def _quad(o, a, b, uv0=(0.0, 0.0), uv1=(1.0, 1.0)) -> Quad:
+    return Quad(np.asarray(o, float), np.asarray(a, float), np.asarray(b, float), uv0, uv1)
+
+
+def _surface(name, texture, texel, quads, kind) -> Surface:
+    return Surface(name, texture, texel, quads, kind)
+
+
+def _tex_size(quad: Quad, texel: float) -> tuple[int, int]:
+    return max(8, int(np.ceil(np.linalg.norm(quad.b) / texel))), max(8, int(np.ceil(np.linalg.norm(quad.a) / texel)))
+
+
+def _box_quads(lo, hi, skip_bottom=True) -> dict[str, Quad]:
+    """Outward-facing quads of an axis-aligned box, keyed by face name."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    dx, dy, dz = hi - lo
+    X, Y, Z = np.array([dx, 0, 0]), np.array([0, dy, 0]), np.array([0, 0, dz])
+    q = {
+        "-x": _quad(lo + Y, -Y, Z),
+        "+x": _quad(lo + X, Y, Z),
+        "-y": _quad(lo, X, Z),
+        "+y": _quad(lo + X + Y, -X, Z),
+        "+z": _quad(lo + Z, X, Y),
+    }
+    if not skip_bottom:
+        q["-z"] = _quad(lo + Y, X, -Y)
+    return q
+
+
+def _shelf_front(rng, h, w) -> np.ndarray:
+    """Bookshelf front: wooden boards with rows of book spines between them."""
+    img = tx.planks(rng, h, w, plank_px=max(8, h))  # wood tone
+    rows = 4
+    board = max(4, h // 40)
+    row_h = (h - board) // rows
+    for r in range(rows):
+        y0 = board + r * row_h
+        books_h = row_h - board
+        img[y0:y0 + books_h, board:w - board] = tx.book_spines(rng, books_h, w - 2 * board)
+    return img
+
+
+def _cylinder_quads(center, radius, height, segments=24) -> list[Quad]:
+    quads = []
+    for i in range(segments):
+        t0, t1 = 2 * np.pi * i / segments, 2 * np.pi * (i + 1) / segments
+        p0 = np.array([center[0] + radius * np.cos(t0), center[1] + radius * np.sin(t0), 0.0])
+        p1 = np.array([center[0] + radius * np.cos(t1), center[1] + radius * np.sin(t1), 0.0])
+        quads.append(_quad(p0, p1 - p0, [0, 0, height], (i / segments, 0.0), ((i + 1) / segments, 1.0)))
+    return quads
+
+
+def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
+    W, D, H = ROOM_SIZE
+    S: list[Surface] = []
+
+    def add(name, quads, texel, kind, make):
+        quads = quads if isinstance(quads, list) else [quads]
+        # texture covers the union of the quads' uv ranges: size it from the first quad and the uv span
+        q0 = quads[0]
+        span_u = max(q.uv1[0] for q in quads) - min(q.uv0[0] for q in quads)
+        h, w0 = _tex_size(q0, texel)
+        w = max(8, int(np.ceil(w0 * span_u / max(q0.uv1[0] - q0.uv0[0], 1e-9))))
+        S.append(_surface(name, make(h, w), texel, quads, kind))
+
+    # room shell, visible sides facing inwards
+    add("floor", _quad([0, D, 0], [W, 0, 0], [0, -D, 0]), 0.004, "stripes", lambda h, w: tx.planks(rng, h, w, 40))
+    add("ceiling", _quad([0, 0, H], [W, 0, 0], [0, D, 0]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (236, 234, 228)))
+    add("wall_south", _quad([0, 0, H], [W, 0, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (196, 204, 212)))
+    add("wall_east", _quad([W, 0, H], [0, D, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (214, 200, 176)))
+    add("wall_north", _quad([W, D, H], [-W, 0, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (222, 218, 206)))
+    add("wall_west", _quad([0, D, H], [0, -D, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (190, 208, 186)))
+    # wall decorations, a little proud of the wall
+    add("blinds", _quad([1.5, 0.03, 2.3], [2.0, 0, 0], [0, 0, -1.4]), 0.003, "stripes", lambda h, w: tx.blinds(rng, h, w, 14))
+    add("tiles", _quad([5.8, D - 0.01, 1.6], [-2.2, 0, 0], [0, 0, -0.7]), 0.003, "stripes", lambda h, w: tx.tiles(rng, h, w, 50, 3))
+    add("brick_wall", _quad([2.4, D - 0.01, H], [-2.0, 0, 0], [0, 0, -H]), 0.004, "rich",
+        lambda h, w: tx.tinted(rng, "brick", h, w, (1.0, 0.62, 0.48), 256))
+    add("poster_astronaut", _quad([W - 0.01, 2.9, 2.0], [0, 1.0, 0], [0, 0, -1.0]), 0.003, "rich", lambda h, w: tx.photo("astronaut", h, w))
+    add("poster_coffee", _quad([3.2, D - 0.01, 2.3], [-0.7, 0, 0], [0, 0, -0.47]), 0.003, "rich", lambda h, w: tx.photo("coffee", h, w))
+    add("poster_chelsea", _quad([0.01, 3.8, 2.0], [0, -0.9, 0], [0, 0, -0.6]), 0.003, "rich", lambda h, w: tx.photo("chelsea", h, w))
+    add("poster_rocket", _quad([0.01, 2.5, 2.1], [0, -0.9, 0], [0, 0, -0.6]), 0.003, "rich", lambda h, w: tx.photo("rocket", h, w))
+    add("poster_hubble", _quad([0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7]), 0.003, "rich", lambda h, w: tx.photo("hubble_deep_field", h, w))
+    add("rug", _quad([2.0, 3.7, 0.008], [2.6, 0, 0], [0, -2.0, 0]), 0.004, "rich",
+        lambda h, w: tx.tinted(rng, "gravel", h, w, (0.75, 0.55, 0.5), 300))
+
+    obstacles: list[Box] = []
+
+    def box(name, lo, hi, texel, kind, make, faces=None):
+        obstacles.append(Box(np.asarray(lo, float), np.asarray(hi, float)))
+        for fname, q in _box_quads(lo, hi).items():
+            if faces is None or fname in faces:
+                add(f"{name}{fname}", q, texel, kind(fname) if callable(kind) else kind, make(fname))
+
+    wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 24))  # noqa: E731
+    # table: top and four legs
+    box("table_top", [2.4, 2.2, 0.72], [3.8, 3.2, 0.76], 0.004, "stripes", wood)
+    for i, (x, y) in enumerate([(2.45, 2.25), (3.7, 2.25), (2.45, 3.1), (3.7, 3.1)]):
+        box(f"table_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.72], 0.004, "stripes", wood)
+    # bookshelf against the east wall: its front (-x) shows the books
+    box("shelf", [5.6, 1.0, 0.0], [5.98, 2.6, 2.0], 0.004, lambda f: "stripes",
+        lambda f: (lambda h, w: _shelf_front(rng, h, w)) if f == "-x" else (lambda h, w: tx.planks(rng, h, w, 30)))
+    # white cabinet in the north-west corner, a cardboard box on top
+    box("cabinet", [0.05, 3.6, 0.0], [0.55, 4.9, 0.9], 0.008, "weak", lambda f: (lambda h, w: tx.weak(rng, h, w, (240, 240, 236), 2.0)))
+    cardboard = lambda f: (lambda h, w: tx.tinted(rng, "gravel", h, w, (0.85, 0.68, 0.45), 200))  # noqa: E731
+    box("box_top", [0.1, 3.8, 0.9], [0.45, 4.3, 1.2], 0.004, "rich", cardboard)
+    box("box_floor", [1.0, 1.0, 0.0], [1.5, 1.4, 0.4], 0.004, "rich", cardboard)
+    # striped cylindrical bin near the north-east corner
+    bin_quads = _cylinder_quads((4.8, 4.3), 0.18, 0.45)
+    obstacles.append(Box(np.array([4.62, 4.12, 0.0]), np.array([4.98, 4.48, 0.45])))
+    add("bin", bin_quads, 0.003, "stripes", lambda h, w: np.transpose(tx.blinds(rng, w, h, 20), (1, 0, 2)).copy())
+    return S, obstacles
+
+
+def _shade(normal: np.ndarray) -> float:
+    """Baked, view-independent Lambertian shading so that differently oriented faces differ."""
+    return float(0.78 + 0.22 * np.dot(normal, _LIGHT))
+
+
+def build_room(seed: int, gt_spacing: float = 0.05) -> Room:
+    """Build the room for ``seed``: mesh, mip-mapped atlas and the vertex-coloured GT mesh."""
+    rng = np.random.default_rng(seed)
+    surfaces, obstacles = _surfaces(rng)
+
+    # shade each surface once (all quads of a surface share an orientation class except the bin)
+    for s in surfaces:
+        if len(s.quads) == 1:
+            s.texture = np.clip(s.texture.astype(np.float32) * _shade(s.quads[0].normal), 0, 255).astype(np.uint8)
+
+    # shelf-pack padded textures into the atlas
+    atlas_w = 4096
+    cells, x, y, row_h = [], 0, 0, 0
+    for s in sorted(range(len(surfaces)), key=lambda i: -surfaces[i].texture.shape[0]):
+        h, w = surfaces[s].texture.shape[:2]
+        ch, cw = -(-(h + 2 * _ALIGN) // _ALIGN) * _ALIGN, -(-(w + 2 * _ALIGN) // _ALIGN) * _ALIGN
+        if cw > atlas_w:
+            raise ValueError(f"texture of {surfaces[s].name} is wider than the atlas")
+        if x + cw > atlas_w:
+            x, y, row_h = 0, y + row_h, 0
+        cells.append((s, x, y, ch, cw))
+        x, row_h = x + cw, max(row_h, ch)
+    atlas_h = y + row_h
+    atlas0 = np.zeros((atlas_h, atlas_w, 3), np.uint8)
+    origin = {}
+    for s, cx, cy, ch, cw in cells:
+        t = surfaces[s].texture
+        h, w = t.shape[:2]
+        padded = cv2.copyMakeBorder(t, _ALIGN, ch - h - _ALIGN, _ALIGN, cw - w - _ALIGN, cv2.BORDER_REPLICATE)
+        atlas0[cy:cy + ch, cx:cx + cw] = padded
+        origin[s] = (cx + _ALIGN, cy + _ALIGN)
+    levels = [atlas0]
+    for _ in range(1, MIP_LEVELS):
+        prev = levels[-1]
+        levels.append(cv2.resize(prev, (prev.shape[1] // 2, prev.shape[0] // 2), interpolation=cv2.INTER_AREA))
+
+    verts, faces, face_uv, face_texel, face_surf = [], [], [], [], []
+    for si, s in enumerate(surfaces):
+        ox, oy = origin[si]
+        h, w = s.texture.shape[:2]
+        for q in s.quads:
+            base = len(verts)
+            verts += [q.o, q.o + q.a, q.o + q.a + q.b, q.o + q.b]
+            u0, v0 = ox + q.uv0[0] * w, oy + q.uv0[1] * h
+            u1, v1 = ox + q.uv1[0] * w, oy + q.uv1[1] * h
+            uv = [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
+            for tri in ((0, 1, 2), (0, 2, 3)):
+                faces.append([base + k for k in tri])
+                face_uv.append([uv[k] for k in tri])
+                face_texel.append(s.texel)
+                face_surf.append(si)
+    atlas = TextureAtlas(levels, np.asarray(face_uv, np.float32), np.asarray(face_texel, np.float32))
+    room = Room(np.asarray(verts, np.float32), np.asarray(faces, np.int32), atlas, np.asarray(face_surf, np.int32),
+                [s.name for s in surfaces], [s.kind for s in surfaces], obstacles)
+    room.gt_mesh = _gt_mesh(surfaces, gt_spacing)
+    return room
+
+
+def _gt_mesh(surfaces: list[Surface], spacing: float) -> trimesh.Trimesh:
+    """Each quad tessellated to <= ``spacing`` cells, vertex colours from the blurred texture."""
+    all_v, all_f, all_c = [], [], []
+    n = 0
+    for s in surfaces:
+        h, w = s.texture.shape[:2]
+        sigma = max(0.5, 0.5 * spacing / s.texel)
+        blurred = cv2.GaussianBlur(s.texture, (0, 0), sigma)
+        for q in s.quads:
+            nu = max(1, int(np.ceil(np.linalg.norm(q.a) / spacing)))
+            nv = max(1, int(np.ceil(np.linalg.norm(q.b) / spacing)))
+            su, sv = np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1)
+            uu, vv = np.meshgrid(su, sv)  # (nv+1, nu+1)
+            p = q.o + uu[..., None] * q.a + vv[..., None] * q.b
+            tu = (q.uv0[0] + uu * (q.uv1[0] - q.uv0[0])) * w
+            tv = (q.uv0[1] + vv * (q.uv1[1] - q.uv0[1])) * h
+            xi = np.clip(tu.astype(int), 0, w - 1)
+            yi = np.clip(tv.astype(int), 0, h - 1)
+            col = blurred[yi, xi]
+            idx = np.arange((nv + 1) * (nu + 1)).reshape(nv + 1, nu + 1) + n
+            a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+            all_f.append(np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]))
+            all_v.append(p.reshape(-1, 3))
+            all_c.append(col.reshape(-1, 3))
+            n += p.shape[0] * p.shape[1]
+    colors = np.concatenate(all_c)
+    rgba = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], axis=1)
+    return trimesh.Trimesh(np.concatenate(all_v), np.concatenate(all_f), vertex_colors=rgba, process=False)

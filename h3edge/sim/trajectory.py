@@ -1,0 +1,71 @@
+"""Smooth camera trajectory through the simulated room.
+
+Hand-placed key views (eye, look-at target) visit every wall, the floor, the ceiling and the
+furniture, with close-ups (about 1 m) and far views across the room; a closed Catmull-Rom
+spline through them, resampled at constant arc length, gives the camera-to-world poses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from h3edge.geometry.camera import look_at
+
+# (eye, target) in room coordinates (x east, y north, z up); see h3edge.sim.scene for the layout.
+KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [
+    ((1.0, 1.0, 1.5), (5.8, 1.8, 1.0)),  # far view to the bookshelf
+    ((3.0, 1.3, 1.4), (5.8, 1.8, 1.1)),
+    ((4.5, 1.6, 1.3), (5.95, 1.8, 1.1)),  # close-up of the books
+    ((4.8, 2.7, 1.5), (6.0, 3.4, 1.5)),  # astronaut poster
+    ((4.6, 3.7, 1.4), (4.7, 5.0, 1.2)),  # tiles close-up
+    ((3.0, 3.6, 1.6), (1.4, 5.0, 1.4)),  # brick wall and coffee poster
+    ((2.1, 3.7, 1.3), (4.8, 4.3, 0.25)),  # bin and floor
+    ((1.6, 3.0, 1.5), (0.0, 2.6, 1.6)),  # west posters
+    ((1.1, 2.0, 1.3), (0.0, 1.0, 1.5)),  # hubble poster close-up
+    ((1.3, 1.6, 1.7), (0.3, 4.2, 0.8)),  # cabinet corner
+    ((1.6, 1.4, 1.6), (2.5, 0.0, 1.6)),  # blinds
+    ((2.5, 1.1, 1.3), (2.6, 0.0, 1.5)),  # blinds close-up
+    ((4.0, 1.3, 1.7), (0.5, 4.5, 0.9)),  # far view across the room
+    ((3.1, 2.0, 2.0), (3.1, 2.8, 0.0)),  # table and rug from above
+    ((2.2, 2.5, 1.6), (3.4, 2.9, 2.8)),  # ceiling
+    ((1.4, 1.4, 1.5), (4.0, 1.0, 0.0)),  # floor and the floor box
+]
+
+
+def _catmull_rom(points: np.ndarray, samples_per_segment: int) -> np.ndarray:
+    """Closed uniform Catmull-Rom spline through ``points`` (N, D), densely sampled."""
+    n = len(points)
+    t = np.linspace(0, 1, samples_per_segment, endpoint=False)[:, None]
+    out = []
+    for i in range(n):
+        p0, p1, p2, p3 = points[(i - 1) % n], points[i], points[(i + 1) % n], points[(i + 2) % n]
+        out.append(0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t ** 2
+                          + (-p0 + 3 * p1 - 3 * p2 + p3) * t ** 3))
+    return np.concatenate(out)
+
+
+def camera_path(n_frames: int) -> np.ndarray:
+    """``n_frames`` camera-to-world poses (N, 4, 4) evenly spaced along the closed key-view loop."""
+    if n_frames < 2:
+        raise ValueError("a trajectory needs at least 2 frames")
+    eyes = np.array([k[0] for k in KEY_VIEWS], float)
+    targets = np.array([k[1] for k in KEY_VIEWS], float)
+    dense = _catmull_rom(np.concatenate([eyes, targets], axis=1), 400)
+    e, tg = dense[:, :3], dense[:, 3:]
+    # arc length over eye motion plus (scaled) gaze motion, so pure turns also advance the camera
+    gaze = tg - e
+    gaze /= np.linalg.norm(gaze, axis=1, keepdims=True)
+    step = np.linalg.norm(np.diff(e, axis=0), axis=1) + 0.8 * np.linalg.norm(np.diff(gaze, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(step)])
+    # open the loop: the last pose stops one step before the first, so frames never repeat
+    want = np.linspace(0, s[-1], n_frames, endpoint=False)
+    idx = np.clip(np.searchsorted(s, want), 0, len(s) - 1)
+    return np.stack([look_at(e[i], tg[i]) for i in idx])
+
+
+def midpoint_poses(poses: np.ndarray, every: int) -> np.ndarray:
+    """Held-out views: SLERP/linear midpoints between training poses i and i+1, every ``every``-th i."""
+    from h3edge.geometry.poses import interpolate_pose
+
+    out = [interpolate_pose(poses[i], poses[i + 1], 0.5) for i in range(0, len(poses) - 1, every)]
+    return np.stack(out)

@@ -1,0 +1,44 @@
+"""The console commands, run as real processes."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def run(*args, check=True):
+    p = subprocess.run([sys.executable, "-m", "h3edge", *args], capture_output=True, text=True, timeout=300)
+    if check and p.returncode != 0:
+        raise AssertionError(f"h3edge {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def test_sim_make_and_eval(tmp_path):
+    out = tmp_path / "scene"
+    p = run("sim", "make", str(out), "--preset", "tiny", "--frames", "12", "--width", "96", "--height", "72")
+    assert "12 frames" in p.stdout and "frames/s" in p.stdout
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["spec"]["width"] == 96 and meta["frames"] == 12
+    p = run("eval", str(out), "--points", "20000", "--json", str(tmp_path / "m.json"))
+    assert "Accuracy [cm]" in p.stdout and "PSNR held-out" in p.stdout
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["geometry"]["accuracy_cm"] < 5 and m["train_views"]["depth_l1_cm"] < 0.01
+    run("sim", "sheet", str(out), str(tmp_path / "sheet.png"), "--frames", "4")
+    assert (tmp_path / "sheet.png").stat().st_size > 1000
+
+
+def test_malformed_dataset_gives_one_line_error(tmp_path):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "traj.txt").write_text("1 0 0 0\n")
+    (tmp_path / "intrinsics.json").write_text('{"width": 4, "height": 4, "fx": 1, "fy": 1, "cx": 2, "cy": 2, '
+                                              '"depth_scale": 1000}')
+    p = run("eval", str(tmp_path), check=False)
+    assert p.returncode == 2
+    assert p.stderr.strip().startswith("error: ") and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["sim", "make", "--help"], ["eval", "--help"], ["demo", "--help"]])
+def test_help(argv):
+    assert run(*argv).returncode == 0

@@ -1,0 +1,32 @@
+import pytest
+
+from h3edge.config import PROFILES_DIR, ProfileError, load_profile
+
+
+@pytest.mark.parametrize("path", sorted(PROFILES_DIR.glob("*.toml")), ids=lambda p: p.stem)
+def test_every_profile_loads(path):
+    prof = load_profile(path)
+    assert prof.name == path.stem
+    assert prof.eval.n_points > 0
+
+
+def test_profile_by_name():
+    assert load_profile("x86-cpu").eval.n_points == 200_000
+
+
+@pytest.mark.parametrize("text, msg", [
+    ("[eval]\nn_pionts = 3\n", "unknown key 'n_pionts'"),
+    ("[evaluation]\n", "unknown table"),
+    ("[eval]\nn_points = 'many'\n", "expected int"),
+    ("[eval\n", "profile.toml"),
+])
+def test_bad_profiles_are_named(tmp_path, text, msg):
+    p = tmp_path / "profile.toml"
+    p.write_text(text)
+    with pytest.raises(ProfileError, match=msg):
+        load_profile(p)
+
+
+def test_missing_profile(tmp_path):
+    with pytest.raises(ProfileError, match="not found"):
+        load_profile(tmp_path / "nope.toml")

@@ -1,0 +1,100 @@
+"""Metrics on known answers."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from h3edge.eval.cull import cull_mesh
+from h3edge.eval.evaluate import MeshRenderer, evaluate_views
+from h3edge.eval.metrics import accuracy_completion, depth_l1, psnr, sample_surface, ssim
+from h3edge.geometry.camera import Intrinsics, look_at
+
+
+def test_psnr_known_answers():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.2, 0.8, (64, 64, 3))
+    assert psnr(img, img) == float("inf")
+    assert psnr(img + 0.1, img) == pytest.approx(20.0, abs=1e-9)  # MSE = 0.01
+    sigma = 0.05
+    noisy = img + rng.normal(0, sigma, img.shape)
+    assert psnr(noisy, img) == pytest.approx(-20 * np.log10(sigma), abs=0.1)
+    u8 = (img * 255).astype(np.uint8)
+    assert psnr(np.clip(u8.astype(int) + 5, 0, 255).astype(np.uint8), u8) == pytest.approx(20 * np.log10(255 / 5), abs=1e-6)
+    mask = np.zeros((64, 64), bool)
+    mask[:10] = True
+    off = img.copy()
+    off[10:] += 0.5
+    assert psnr(off, img, mask) == float("inf")
+
+
+def test_ssim_known_answers():
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 1, (64, 64, 3))
+    assert ssim(img, img) == pytest.approx(1.0)
+    # constant images: only the luminance term remains, (2ab + C1) / (a^2 + b^2 + C1), C1 = (0.01 L)^2
+    a, b, c1 = 0.5, 0.7, 0.01 ** 2
+    flat_a, flat_b = np.full((32, 32, 3), a), np.full((32, 32, 3), b)
+    assert ssim(flat_a, flat_b) == pytest.approx((2 * a * b + c1) / (a * a + b * b + c1), rel=1e-6)
+    noisier = [ssim(np.clip(img + rng.normal(0, s, img.shape), 0, 1), img) for s in (0.02, 0.1, 0.3)]
+    assert noisier[0] > noisier[1] > noisier[2]
+
+
+def test_depth_l1_counts_holes():
+    gt = np.full((4, 4), 2.0, np.float32)
+    gt[0, 0] = 0  # invalid GT pixel ignored
+    pred = gt + 0.01
+    pred[0, 0] = 100
+    assert depth_l1(pred, gt) == (pytest.approx(0.01, abs=1e-6), 1.0)
+    pred[1, 1] = 0  # hole: full depth as error
+    e, cov = depth_l1(pred, gt)
+    assert e == pytest.approx((14 * 0.01 + 2.0) / 15, abs=1e-6) and cov == pytest.approx(14 / 15)
+
+
+def _plane(z=0.0):
+    return trimesh.Trimesh([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def test_identical_meshes_zero():
+    pts = sample_surface(_plane(), 50_000, seed=0)
+    m = accuracy_completion(pts, pts)
+    assert m["accuracy"] == 0 and m["completion"] == 0 and m["completion_ratio"] == 1
+
+
+def test_shifted_mesh_about_one_cm():
+    gt = sample_surface(_plane(0.0), 200_000, seed=0)
+    rc = sample_surface(_plane(0.01), 200_000, seed=1)
+    m = accuracy_completion(rc, gt)
+    assert m["accuracy"] == pytest.approx(0.01, abs=0.001)
+    assert m["completion"] == pytest.approx(0.01, abs=0.001)
+    far = accuracy_completion(sample_surface(_plane(0.1), 20_000, seed=1), gt)
+    assert far["completion_ratio"] == 0
+
+
+def test_cull_removes_unseen_and_occluded():
+    # camera at z = 2 looking down at a small near plane (z = 1) that hides the centre of a big
+    # floor (z = 0); floor parts outside the frustum and under the near plane are culled
+    floor = trimesh.creation.box((4, 4, 0.01))
+    floor = floor.subdivide_to_size(0.05)
+    floor.apply_translation([0, 0, -0.005])
+    cover = trimesh.creation.box((0.6, 0.6, 0.01)).subdivide_to_size(0.05)
+    cover.apply_translation([0, 0, 1.0])
+    scene = trimesh.util.concatenate([floor, cover])
+    intr = Intrinsics(64, 64, 40, 40, 32, 32)  # ~77 deg: sees about |x|, |y| < 1.6 of the floor at 2 m
+    T = look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.01, 0.0]))
+    culled = cull_mesh(scene, T[None], intr)
+    c = culled.triangles_center
+    top_floor = c[np.isclose(c[:, 2], 0.0, atol=1e-3)]
+    assert len(top_floor) > 0
+    assert np.abs(top_floor[:, :2]).max() < 1.7  # outside the frustum: gone
+    under = (np.abs(top_floor[:, 0]) < 0.2) & (np.abs(top_floor[:, 1]) < 0.2)
+    assert not under.any()  # occluded by the cover: gone
+    assert (c[:, 2] > 1.0).any()  # the cover's top is seen
+
+
+def test_view_metrics_on_self(tiny_scene):
+    from h3edge.io import open_sequence
+    seq = open_sequence(tiny_scene)
+    res = evaluate_views(MeshRenderer(trimesh.load(seq.gt_mesh_path, process=False)), seq, stride=10)
+    assert res["views"] == 4
+    assert res["depth_l1_cm"] < 0.01 and res["depth_coverage"] > 0.99
+    assert res["psnr_db"] > 25
