@@ -1,0 +1,285 @@
+"""Multiresolution hash encoding (instant-NGP math) with sparse, row-wise optimisation.
+
+Math (as tiny-cuda-nn computes it): world points are normalised per axis to the map bound,
+x in [0, 1]^3. Level l has ``scale_l = base_resolution * per_level_scale**l - 1`` and grid
+position ``p = x * scale_l + 0.5``; the 8 corners of the cell containing p are looked up and
+trilinearly interpolated. A level whose grid ((ceil(scale_l) + 2)^3 vertices) fits in the table
+is indexed densely, otherwise by the spatial hash ``(v_x * pi_1) XOR (v_y * pi_2) XOR
+(v_z * pi_3) mod T`` (pi = 1, 2654435761, 805459861). Each level owns T rows of F features.
+
+Two interchangeable implementations give the same numbers:
+- ``torch``: plain PyTorch gathers, runs on CPU and CUDA;
+- ``numba``: a fused CPU kernel (forward parallel over points, backward parallel over levels, so
+  scatter-adds never race).
+Neither produces a dense gradient: backward yields the touched rows and their gradients, and
+:meth:`HashGrid.sparse_adam_step` updates only those rows (lazy Adam), never the whole table.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+PRIMES = (1, 2654435761, 805459861)
+
+
+@dataclass(frozen=True)
+class HashGridSpec:
+    levels: int = 4  # L
+    features: int = 2  # F per level
+    log2_table: int = 19  # T = 2^19 rows per level
+    base_resolution: int = 16  # cells along each axis at level 0
+    per_level_scale: float = 2.0
+
+    @property
+    def table_size(self) -> int:
+        return 1 << self.log2_table
+
+    @property
+    def out_dim(self) -> int:
+        return self.levels * self.features
+
+    def level_scales(self) -> np.ndarray:
+        return np.array([self.base_resolution * self.per_level_scale ** l - 1.0 for l in range(self.levels)])
+
+    def level_dense(self) -> np.ndarray:
+        """Per level: grid side length when indexed densely, 0 when hashed."""
+        out = []
+        for s in self.level_scales():
+            side = int(math.ceil(s)) + 2
+            out.append(side if side ** 3 <= self.table_size else 0)
+        return np.array(out, np.int64)
+
+
+def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, primes=PRIMES) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row indices (N, L, 8) int64 into the (L*T, F) table and trilinear weights (N, L, 8)."""
+    T = spec.table_size
+    dev = xn.device
+    scales = torch.tensor(spec.level_scales(), dtype=xn.dtype, device=dev)
+    dense = torch.tensor(spec.level_dense(), device=dev)
+    p = xn[:, None, :] * scales[None, :, None] + 0.5  # (N, L, 3)
+    g = torch.floor(p)
+    f = p - g
+    g = g.long()
+    offs = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], device=dev)  # (8, 3)
+    v = g[:, :, None, :] + offs[None, None]  # (N, L, 8, 3)
+    w = torch.where(offs[None, None].bool(), f[:, :, None, :], 1 - f[:, :, None, :]).prod(-1)  # (N, L, 8)
+    side = dense[None, :, None]
+    dense_idx = v[..., 0] + side * (v[..., 1] + side * v[..., 2])
+    hashed = (v[..., 0] * primes[0]) ^ (v[..., 1] * primes[1]) ^ (v[..., 2] * primes[2])
+    idx = torch.where(side > 0, dense_idx, hashed) & (T - 1)
+    idx = idx + torch.arange(spec.levels, device=dev)[None, :, None] * T
+    return idx, w
+
+
+class _TorchEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, xn, table, grid):
+        idx, w = corner_indices_torch(xn, grid.spec, grid.primes)
+        ctx.save_for_backward(idx, w)
+        ctx.grid = grid
+        feats = table[idx]  # (N, L, 8, F)
+        return (feats * w[..., None]).sum(2).reshape(len(xn), -1)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        idx, w = ctx.saved_tensors
+        grid = ctx.grid
+        F = grid.spec.features
+        contrib = (grad_out.reshape(len(idx), grid.spec.levels, 1, F) * w[..., None]).reshape(-1, F)
+        rows, inv = torch.unique(idx.reshape(-1), return_inverse=True)
+        g = torch.zeros(len(rows), F, dtype=grad_out.dtype, device=grad_out.device).index_add_(0, inv, contrib)
+        grid._accumulate(rows, g)
+        return None, None, None
+
+
+def _numba_kernels():
+    import numba as nb
+
+    @nb.njit(parallel=True, fastmath=True, cache=True)
+    def fwd(xn, table, scales, dense, T, p0, p1, p2, out, idx_out, w_out, store):
+        n = xn.shape[0]
+        L = scales.shape[0]
+        F = table.shape[1]
+        for i in nb.prange(n):
+            for l in range(L):
+                px = xn[i, 0] * scales[l] + 0.5
+                py = xn[i, 1] * scales[l] + 0.5
+                pz = xn[i, 2] * scales[l] + 0.5
+                gx, gy, gz = math.floor(px), math.floor(py), math.floor(pz)
+                fx, fy, fz = px - gx, py - gy, pz - gz
+                ix, iy, iz = np.int64(gx), np.int64(gy), np.int64(gz)
+                side = dense[l]
+                for f in range(F):
+                    out[i, l * F + f] = 0.0
+                for c in range(8):
+                    cx = ix + (c & 1)
+                    cy = iy + ((c >> 1) & 1)
+                    cz = iz + ((c >> 2) & 1)
+                    wx = fx if (c & 1) else 1.0 - fx
+                    wy = fy if ((c >> 1) & 1) else 1.0 - fy
+                    wz = fz if ((c >> 2) & 1) else 1.0 - fz
+                    w = wx * wy * wz
+                    if side > 0:
+                        h = cx + side * (cy + side * cz)
+                    else:
+                        h = (cx * p0) ^ (cy * p1) ^ (cz * p2)
+                    row = (h & (T - 1)) + l * T
+                    if store:
+                        idx_out[i, l * 8 + c] = row
+                        w_out[i, l * 8 + c] = w
+                    for f in range(F):
+                        out[i, l * F + f] += w * table[row, f]
+
+    @nb.njit(parallel=True, fastmath=True, cache=True)
+    def bwd(grad_out, idx, w, L, F, grad_buf, touched, touched_rows, n_touched):
+        # one thread per level: levels own disjoint table rows, so the scatter never races
+        n = idx.shape[0]
+        for l in nb.prange(L):
+            cnt = 0
+            base = l * n * 8
+            for i in range(n):
+                for c in range(8):
+                    row = idx[i, l * 8 + c]
+                    wc = w[i, l * 8 + c]
+                    for f in range(F):
+                        grad_buf[row, f] += wc * grad_out[i, l * F + f]
+                    if not touched[row]:
+                        touched[row] = True
+                        touched_rows[base + cnt] = row
+                        cnt += 1
+            n_touched[l] = cnt
+
+    return fwd, bwd
+
+
+class _NumbaEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, xn, table, grid):
+        fwd, _ = grid._kernels()
+        n = len(xn)
+        L, F = grid.spec.levels, grid.spec.features
+        x = xn.detach().numpy()
+        out = np.empty((n, L * F), np.float32)
+        store = torch.is_grad_enabled() and table.requires_grad
+        idx = np.empty((n if store else 0, L * 8), np.int32)
+        w = np.empty((n if store else 0, L * 8), np.float32)
+        p0, p1, p2 = (np.int64(p) for p in grid.primes)
+        fwd(x, table.detach().numpy(), grid._scales_np, grid._dense_np, grid.spec.table_size, p0, p1, p2,
+            out, idx, w, store)
+        ctx.grid, ctx.idx, ctx.w = grid, idx, w
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        grid = ctx.grid
+        _, bwd = grid._kernels()
+        L, F = grid.spec.levels, grid.spec.features
+        n = len(ctx.idx)
+        touched_rows = np.empty(L * n * 8, np.int64)
+        n_touched = np.zeros(L, np.int64)
+        buf = grid._grad_buf.numpy()
+        touched = grid._touched.numpy()
+        bwd(np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), ctx.idx, ctx.w, L, F, buf, touched,
+            touched_rows, n_touched)
+        rows = np.concatenate([touched_rows[l * n * 8:l * n * 8 + n_touched[l]] for l in range(L)])
+        rows_t = torch.from_numpy(rows.astype(np.int64))
+        g = grid._grad_buf[rows_t].clone()
+        grid._grad_buf[rows_t] = 0.0
+        grid._touched[rows_t] = False
+        grid._accumulate(rows_t, g)
+        return None, None, None
+
+
+class HashGrid(torch.nn.Module):
+    """Hash-encoded feature field over an axis-aligned bound; ``forward(x_world) -> (N, L*F)``."""
+
+    def __init__(self, spec: HashGridSpec, bound: np.ndarray, primes=PRIMES, backend: str = "auto",
+                 init_scale: float = 1e-4, seed: int = 0, device: str | torch.device = "cpu"):
+        super().__init__()
+        self.spec = spec
+        self.primes = tuple(int(p) for p in primes)
+        bound = np.asarray(bound, np.float64)
+        self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32, device=device))
+        self.register_buffer("bound_size", torch.tensor(bound[1] - bound[0], dtype=torch.float32, device=device))
+        gen = torch.Generator().manual_seed(seed)
+        table = (torch.rand(spec.levels * spec.table_size, spec.features, generator=gen) * 2 - 1) * init_scale
+        # The table is optimised row-sparsely (sparse_adam_step), not by a torch optimiser: it
+        # requires grad only so that autograd calls the encoders' backward, which never fills .grad.
+        self.register_buffer("table", table.to(device).requires_grad_(True))
+        self.register_buffer("adam_m", torch.zeros_like(self.table))
+        self.register_buffer("adam_v", torch.zeros_like(self.table))
+        self.adam_steps = 0
+        dev = torch.device(device)
+        if backend == "auto":
+            backend = "numba" if dev.type == "cpu" and _numba_available() else "torch"
+        if backend == "numba" and dev.type != "cpu":
+            raise ValueError("the numba backend runs on CPU only")
+        self.backend = backend
+        self._scales_np = spec.level_scales().astype(np.float32)
+        self._dense_np = spec.level_dense()
+        if backend == "numba":
+            self._grad_buf = torch.zeros_like(self.table)
+            self._touched = torch.zeros(len(self.table), dtype=torch.bool)
+        self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self._kern = None
+
+    def _kernels(self):
+        if self._kern is None:
+            self._kern = _numba_kernels()
+        return self._kern
+
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.bound_min) / self.bound_size).clamp(0.0, 1.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        xn = self.normalise(x.to(torch.float32)).contiguous()
+        if self.backend == "numba":
+            return _NumbaEncode.apply(xn, self.table, self)
+        return _TorchEncode.apply(xn, self.table, self)
+
+    def _accumulate(self, rows: torch.Tensor, grads: torch.Tensor) -> None:
+        self._pending.append((rows, grads))
+
+    def take_sparse_grad(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows touched since the last call and their summed gradients (rows unique)."""
+        if not self._pending:
+            return torch.zeros(0, dtype=torch.long, device=self.table.device), \
+                torch.zeros(0, self.spec.features, device=self.table.device)
+        if len(self._pending) == 1:
+            rows, g = self._pending[0]
+        else:
+            rows_all = torch.cat([r for r, _ in self._pending])
+            g_all = torch.cat([g for _, g in self._pending])
+            rows, inv = torch.unique(rows_all, return_inverse=True)
+            g = torch.zeros(len(rows), g_all.shape[1], dtype=g_all.dtype, device=g_all.device).index_add_(0, inv, g_all)
+        self._pending = []
+        return rows, g
+
+    @torch.no_grad()
+    def sparse_adam_step(self, lr: float, betas=(0.9, 0.999), eps: float = 1e-15) -> int:
+        """Lazy Adam on the touched rows only; returns how many rows were updated."""
+        rows, g = self.take_sparse_grad()
+        if len(rows) == 0:
+            return 0
+        self.adam_steps += 1
+        b1, b2 = betas
+        m = self.adam_m[rows].mul_(b1).add_(g, alpha=1 - b1)
+        v = self.adam_v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+        self.adam_m[rows] = m
+        self.adam_v[rows] = v
+        c1 = 1 - b1 ** self.adam_steps
+        c2 = 1 - b2 ** self.adam_steps
+        self.table[rows] -= lr * (m / c1) / ((v / c2).sqrt() + eps)
+        return len(rows)
+
+
+def _numba_available() -> bool:
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
