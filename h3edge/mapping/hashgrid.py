@@ -158,13 +158,12 @@ def _numba_kernels():
 
 class _NumbaEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, xn, table, grid):
+    def forward(ctx, xn, table, grid, store):
         fwd, _ = grid._kernels()
         n = len(xn)
         L, F = grid.spec.levels, grid.spec.features
         x = xn.detach().numpy()
         out = np.empty((n, L * F), np.float32)
-        store = torch.is_grad_enabled() and table.requires_grad
         idx = np.empty((n if store else 0, L * 8), np.int32)
         w = np.empty((n if store else 0, L * 8), np.float32)
         p0, p1, p2 = (np.int64(p) for p in grid.primes)
@@ -191,7 +190,7 @@ class _NumbaEncode(torch.autograd.Function):
         grid._grad_buf[rows_t] = 0.0
         grid._touched[rows_t] = False
         grid._accumulate(rows_t, g)
-        return None, None, None
+        return None, None, None, None
 
 
 class HashGrid(torch.nn.Module):
@@ -238,7 +237,8 @@ class HashGrid(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xn = self.normalise(x.to(torch.float32)).contiguous()
         if self.backend == "numba":
-            return _NumbaEncode.apply(xn, self.table, self)
+            # grad mode is off inside Function.forward, so decide here whether backward will come
+            return _NumbaEncode.apply(xn, self.table, self, torch.is_grad_enabled() and self.table.requires_grad)
         return _TorchEncode.apply(xn, self.table, self)
 
     def _accumulate(self, rows: torch.Tensor, grads: torch.Tensor) -> None:
