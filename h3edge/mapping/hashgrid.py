@@ -9,8 +9,8 @@ is indexed densely, otherwise by the spatial hash ``(v_x * pi_1) XOR (v_y * pi_2
 
 Two interchangeable implementations give the same numbers:
 - ``torch``: plain PyTorch gathers, runs on CPU and CUDA;
-- ``numba``: a fused CPU kernel (forward parallel over points, backward parallel over levels, so
-  scatter-adds never race).
+- ``numba``: fused CPU kernels (forward parallel over points; backward recomputes the corners,
+  parallel over levels, so scatter-adds never race).
 Neither produces a dense gradient: backward yields the touched rows and their gradients, and
 :meth:`HashGrid.sparse_adam_step` updates only those rows (lazy Adam), never the whole table.
 """
@@ -99,98 +99,117 @@ class _TorchEncode(torch.autograd.Function):
 def _numba_kernels():
     import numba as nb
 
+    @nb.njit(inline="always", fastmath=True)
+    def cell(xn, i, scale):
+        """Integer cell corner and fractional position of point i at a level of ``scale``."""
+        px = xn[i, 0] * scale + 0.5
+        py = xn[i, 1] * scale + 0.5
+        pz = xn[i, 2] * scale + 0.5
+        gx, gy, gz = math.floor(px), math.floor(py), math.floor(pz)
+        return np.int64(gx), np.int64(gy), np.int64(gz), px - gx, py - gy, pz - gz
+
+    @nb.njit(inline="always", fastmath=True)
+    def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, c):
+        """Row offset inside the level and trilinear weight of corner c of the cell."""
+        cx = ix + (c & 1)
+        cy = iy + ((c >> 1) & 1)
+        cz = iz + ((c >> 2) & 1)
+        wx = fx if (c & 1) else 1.0 - fx
+        wy = fy if ((c >> 1) & 1) else 1.0 - fy
+        wz = fz if ((c >> 2) & 1) else 1.0 - fz
+        if side > 0:
+            h = cx + side * (cy + side * cz)
+        else:
+            h = (cx * p0) ^ (cy * p1) ^ (cz * p2)
+        return h & (T - 1), wx * wy * wz
+
     @nb.njit(parallel=True, fastmath=True, cache=True)
-    def fwd(xn, table, scales, dense, T, p0, p1, p2, out, idx_out, w_out, store):
+    def fwd(xn, table, scales, dense, T, p0, p1, p2, out):
         n = xn.shape[0]
         L = scales.shape[0]
         F = table.shape[1]
         for i in nb.prange(n):
             for l in range(L):
-                px = xn[i, 0] * scales[l] + 0.5
-                py = xn[i, 1] * scales[l] + 0.5
-                pz = xn[i, 2] * scales[l] + 0.5
-                gx, gy, gz = math.floor(px), math.floor(py), math.floor(pz)
-                fx, fy, fz = px - gx, py - gy, pz - gz
-                ix, iy, iz = np.int64(gx), np.int64(gy), np.int64(gz)
-                side = dense[l]
                 for f in range(F):
                     out[i, l * F + f] = 0.0
+                ix, iy, iz, fx, fy, fz = cell(xn, i, scales[l])
                 for c in range(8):
-                    cx = ix + (c & 1)
-                    cy = iy + ((c >> 1) & 1)
-                    cz = iz + ((c >> 2) & 1)
-                    wx = fx if (c & 1) else 1.0 - fx
-                    wy = fy if ((c >> 1) & 1) else 1.0 - fy
-                    wz = fz if ((c >> 2) & 1) else 1.0 - fz
-                    w = wx * wy * wz
-                    if side > 0:
-                        h = cx + side * (cy + side * cz)
-                    else:
-                        h = (cx * p0) ^ (cy * p1) ^ (cz * p2)
-                    row = (h & (T - 1)) + l * T
-                    if store:
-                        idx_out[i, l * 8 + c] = row
-                        w_out[i, l * 8 + c] = w
+                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, c)
+                    row = h + l * T
                     for f in range(F):
                         out[i, l * F + f] += w * table[row, f]
 
     @nb.njit(parallel=True, fastmath=True, cache=True)
-    def bwd(grad_out, idx, w, L, F, grad_buf, touched, touched_rows, n_touched):
-        # one thread per level: levels own disjoint table rows, so the scatter never races
-        n = idx.shape[0]
+    def bwd(xn, grad_out, scales, dense, T, p0, p1, p2, grad_buf, touched, touched_rows, n_touched):
+        # Corners are recomputed rather than stored (256 B/point saved). One thread per level:
+        # levels own disjoint table rows, so the scatter-add never races.
+        n = xn.shape[0]
+        L = scales.shape[0]
+        F = grad_buf.shape[1]
         for l in nb.prange(L):
             cnt = 0
             base = l * n * 8
             for i in range(n):
+                ix, iy, iz, fx, fy, fz = cell(xn, i, scales[l])
                 for c in range(8):
-                    row = idx[i, l * 8 + c]
-                    wc = w[i, l * 8 + c]
+                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, c)
+                    row = h + l * T
                     for f in range(F):
-                        grad_buf[row, f] += wc * grad_out[i, l * F + f]
+                        grad_buf[row, f] += w * grad_out[i, l * F + f]
                     if not touched[row]:
                         touched[row] = True
                         touched_rows[base + cnt] = row
                         cnt += 1
             n_touched[l] = cnt
 
-    return fwd, bwd
+    @nb.njit(parallel=True, cache=True)
+    def collect(grad_buf, touched, touched_rows, n_touched, n, rows_out, grads_out):
+        # Gather the touched rows' gradients into compact arrays, then clear buffer and flags.
+        L = n_touched.shape[0]
+        starts = np.zeros(L + 1, np.int64)
+        for l in range(L):
+            starts[l + 1] = starts[l] + n_touched[l]
+        for l in nb.prange(L):
+            for k in range(n_touched[l]):
+                row = touched_rows[l * n * 8 + k]
+                j = starts[l] + k
+                rows_out[j] = row
+                for f in range(grad_buf.shape[1]):
+                    grads_out[j, f] = grad_buf[row, f]
+                    grad_buf[row, f] = 0.0
+                touched[row] = False
+
+    return fwd, bwd, collect
 
 
 class _NumbaEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, xn, table, grid, store):
-        fwd, _ = grid._kernels()
-        n = len(xn)
-        L, F = grid.spec.levels, grid.spec.features
+    def forward(ctx, xn, table, grid):
+        fwd = grid._kernels()[0]
         x = xn.detach().numpy()
-        out = np.empty((n, L * F), np.float32)
-        idx = np.empty((n if store else 0, L * 8), np.int32)
-        w = np.empty((n if store else 0, L * 8), np.float32)
-        p0, p1, p2 = (np.int64(p) for p in grid.primes)
-        fwd(x, table.detach().numpy(), grid._scales_np, grid._dense_np, grid.spec.table_size, p0, p1, p2,
-            out, idx, w, store)
-        ctx.grid, ctx.idx, ctx.w = grid, idx, w
+        out = np.empty((len(x), grid.spec.out_dim), np.float32)
+        fwd(x, table.detach().numpy(), grid._scales_np, grid._dense_np, grid.spec.table_size, *grid._primes_np, out)
+        ctx.grid, ctx.x = grid, x
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        grid = ctx.grid
-        _, bwd = grid._kernels()
-        L, F = grid.spec.levels, grid.spec.features
-        n = len(ctx.idx)
-        touched_rows = np.empty(L * n * 8, np.int64)
+        grid, x = ctx.grid, ctx.x
+        _, bwd, collect = grid._kernels()
+        L, n = grid.spec.levels, len(x)
+        if len(grid._touched_rows) < L * n * 8:  # reused across steps: 8 corners x L levels per point
+            grid._touched_rows = np.empty(L * n * 8, np.int64)
+        touched_rows = grid._touched_rows
         n_touched = np.zeros(L, np.int64)
-        buf = grid._grad_buf.numpy()
-        touched = grid._touched.numpy()
-        bwd(np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), ctx.idx, ctx.w, L, F, buf, touched,
-            touched_rows, n_touched)
-        rows = np.concatenate([touched_rows[l * n * 8:l * n * 8 + n_touched[l]] for l in range(L)])
-        rows_t = torch.from_numpy(rows.astype(np.int64))
-        g = grid._grad_buf[rows_t].clone()
-        grid._grad_buf[rows_t] = 0.0
-        grid._touched[rows_t] = False
-        grid._accumulate(rows_t, g)
-        return None, None, None, None
+        buf, touched = grid._grad_buf.numpy(), grid._touched.numpy()
+        bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np, grid._dense_np,
+            grid.spec.table_size, *grid._primes_np, buf, touched, touched_rows, n_touched)
+        total = int(n_touched.sum())
+        rows = np.empty(total, np.int64)
+        grads = np.empty((total, buf.shape[1]), np.float32)
+        collect(buf, touched, touched_rows, n_touched, n, rows, grads)
+        grid._accumulate(torch.from_numpy(rows), torch.from_numpy(grads))
+        return None, None, None
 
 
 class HashGrid(torch.nn.Module):
@@ -220,9 +239,11 @@ class HashGrid(torch.nn.Module):
         self.backend = backend
         self._scales_np = spec.level_scales().astype(np.float32)
         self._dense_np = spec.level_dense()
+        self._primes_np = tuple(np.int64(p) for p in self.primes)
         if backend == "numba":
             self._grad_buf = torch.zeros_like(self.table)
             self._touched = torch.zeros(len(self.table), dtype=torch.bool)
+            self._touched_rows = np.empty(0, np.int64)
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self._kern = None
 
@@ -237,8 +258,7 @@ class HashGrid(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xn = self.normalise(x.to(torch.float32)).contiguous()
         if self.backend == "numba":
-            # grad mode is off inside Function.forward, so decide here whether backward will come
-            return _NumbaEncode.apply(xn, self.table, self, torch.is_grad_enabled() and self.table.requires_grad)
+            return _NumbaEncode.apply(xn, self.table, self)
         return _TorchEncode.apply(xn, self.table, self)
 
     def _accumulate(self, rows: torch.Tensor, grads: torch.Tensor) -> None:
