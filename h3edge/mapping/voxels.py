@@ -1,0 +1,163 @@
+"""Sparse leaf voxels with optimisable SDF priors at their vertices (the coarse level of H2/H3).
+
+Leaf voxels of side ``voxel_size`` are allocated where a frame's back-projected valid depth puts
+at least ``min_points`` points, plus the face neighbour when the voxel's mean point lies within
+``neighbour_margin`` (a fraction of the side) of that face. Voxels and their 8 corner vertices
+live in sorted int64 key arrays (coordinates packed 21 bits per axis), so lookups are
+``searchsorted`` calls and the map is unbounded in space; a voxel cap bounds memory, and frames
+that would exceed it allocate nothing more (the caller is told how many were refused).
+
+SDF priors are stored in truncation units (metres / ``truncation``), as the authors do. A new
+voxel's 8 vertices are initialised once, projectively: prior = (measured depth - vertex z) /
+truncation, only when all 8 corners project inside the image onto valid depth and lie within
+``init_range`` of the surface. The coarse SDF of a point is the trilinear interpolation of its
+voxel's 8 priors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from h3edge.geometry.camera import Intrinsics, backproject, project
+
+_BITS = 21
+_OFF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
+
+
+def pack(ijk: np.ndarray) -> np.ndarray:
+    """Integer coordinates (N, 3) -> int64 keys (order-preserving along z, then y, then x)."""
+    v = ijk.astype(np.int64) + _OFF
+    if (v < 0).any() or (v > _MASK).any():
+        raise ValueError("voxel coordinate outside the +-2^20 range")
+    return (v[:, 2] << (2 * _BITS)) | (v[:, 1] << _BITS) | v[:, 0]
+
+
+def unpack(keys: np.ndarray) -> np.ndarray:
+    return np.stack([keys & _MASK, (keys >> _BITS) & _MASK, (keys >> (2 * _BITS)) & _MASK], -1) - _OFF
+
+
+def lookup(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Index of each key in ``sorted_keys``, -1 where absent."""
+    if len(sorted_keys) == 0:
+        return np.full(len(keys), -1, np.int64)
+    i = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return np.where(sorted_keys[i] == keys, i, -1)
+
+
+@dataclass(frozen=True)
+class VoxelConfig:
+    voxel_size: float = 0.1  # m, octree leaf size (paper / authors: 0.1)
+    min_points: int = 10  # depth points needed to allocate a voxel (authors: > 10)
+    neighbour_margin: float = 0.1  # allocate the face neighbour when the mean point is this close
+    truncation: float = 0.05  # m, SDF truncation = the unit SDF priors are stored in
+    init_range: float = 0.245  # m, sqrt(6) * voxel: vertices farther from the surface stay unset
+    max_voxels: int = 200_000  # cap (the authors' num_vertexes budget); memory bound
+
+
+class VoxelMap:
+    """Leaf voxels (sorted keys) and vertices (sorted keys) with SDF priors as a torch tensor.
+
+    Indices into ``voxel_keys`` / ``vertex_keys`` change when voxels are inserted; callers
+    re-query after :meth:`allocate`. ``voxel_vertices`` maps each voxel to its 8 vertex indices.
+    """
+
+    def __init__(self, cfg: VoxelConfig = VoxelConfig(), device: str | torch.device = "cpu"):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.voxel_keys = np.zeros(0, np.int64)
+        self.vertex_keys = np.zeros(0, np.int64)
+        self.voxel_vertices = np.zeros((0, 8), np.int64)
+        self.priors = torch.zeros(0, device=self.device, requires_grad=True)  # truncation units
+        self.prior_set = np.zeros(0, bool)
+        self.refused = 0  # voxels not allocated because of the cap
+
+    def __len__(self) -> int:
+        return len(self.voxel_keys)
+
+    def voxel_coords(self, points: np.ndarray) -> np.ndarray:
+        return np.floor(points / self.cfg.voxel_size).astype(np.int64)
+
+    def allocate(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:
+        """Allocate voxels seen by a frame; returns the keys of the newly created voxels."""
+        pts = backproject(depth, intr, c2w).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(1)]
+        if len(pts) == 0:
+            return np.zeros(0, np.int64)
+        ijk = self.voxel_coords(pts)
+        keys, inv, counts = np.unique(pack(ijk), return_inverse=True, return_counts=True)
+        ok = counts >= self.cfg.min_points
+        # mean point inside each voxel, in voxel units relative to its corner
+        sums = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(keys)) for k in range(3)], -1)
+        frac = sums / (counts[:, None] * self.cfg.voxel_size) - unpack(keys)
+        cand = [keys[ok]]
+        m = self.cfg.neighbour_margin
+        base = unpack(keys[ok])
+        for axis in range(3):
+            for side, near in ((-1, frac[ok, axis] < m), (1, frac[ok, axis] > 1 - m)):
+                nb = base[near].copy()
+                nb[:, axis] += side
+                cand.append(pack(nb))
+        new = np.setdiff1d(np.unique(np.concatenate(cand)), self.voxel_keys, assume_unique=True)
+        room = self.cfg.max_voxels - len(self.voxel_keys)
+        if len(new) > room:
+            self.refused += len(new) - max(room, 0)
+            new = new[:max(room, 0)]
+        if len(new):
+            self._insert(new)
+            self._init_priors(new, depth, intr, c2w)
+        return new
+
+    def _insert(self, new_keys: np.ndarray) -> None:
+        self.voxel_keys = np.union1d(self.voxel_keys, new_keys)
+        corner_keys = pack((unpack(new_keys)[:, None, :] + CORNERS[None]).reshape(-1, 3))
+        old_keys, old_priors, old_set = self.vertex_keys, self.priors, self.prior_set
+        self.vertex_keys = np.union1d(old_keys, corner_keys)
+        # carry existing priors over to their new positions
+        pos = np.searchsorted(self.vertex_keys, old_keys)
+        priors = torch.zeros(len(self.vertex_keys), device=self.device)
+        priors[torch.from_numpy(pos).to(self.device)] = old_priors.detach()
+        self.priors = priors.requires_grad_(True)  # a new leaf: optimisers re-register it after growth
+        self.prior_set = np.zeros(len(self.vertex_keys), bool)
+        self.prior_set[pos] = old_set
+        all_corners = pack((unpack(self.voxel_keys)[:, None, :] + CORNERS[None]).reshape(-1, 3))
+        self.voxel_vertices = np.searchsorted(self.vertex_keys, all_corners).reshape(-1, 8)
+
+    def _init_priors(self, new_keys: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
+        vox = lookup(self.voxel_keys, new_keys)
+        vid = self.voxel_vertices[vox]  # (n, 8)
+        pos = unpack(self.vertex_keys[vid.reshape(-1)]) * self.cfg.voxel_size
+        uv, z = project(pos.astype(np.float64), intr, c2w)
+        with np.errstate(invalid="ignore"):
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
+        d = np.zeros(len(z))
+        ui = np.clip(np.nan_to_num(uv[:, 0]), 0, intr.width - 1).astype(int)
+        vi = np.clip(np.nan_to_num(uv[:, 1]), 0, intr.height - 1).astype(int)
+        d[inside] = depth[vi[inside], ui[inside]]
+        sdf = d - z
+        good = inside & (d > 0) & (np.abs(sdf) < self.cfg.init_range)
+        voxel_ok = good.reshape(-1, 8).all(1)
+        targets = vid[voxel_ok].reshape(-1)
+        values = (sdf.reshape(-1, 8)[voxel_ok].reshape(-1)) / self.cfg.truncation
+        fresh = ~self.prior_set[targets]  # set once per vertex
+        if fresh.any():
+            t = torch.from_numpy(targets[fresh]).to(self.device)
+            self.priors.data[t] = torch.from_numpy(values[fresh].astype(np.float32)).to(self.device)
+            self.prior_set[targets[fresh]] = True
+
+    def coarse_sdf(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel."""
+        p = points.detach().cpu().numpy().astype(np.float64) / self.cfg.voxel_size
+        g = np.floor(p).astype(np.int64)
+        vox = lookup(self.voxel_keys, pack(g))
+        inside = vox >= 0
+        f = torch.from_numpy((p - g).astype(np.float32)).to(points.device)
+        vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
+        corners = torch.from_numpy(CORNERS).to(points.device).bool()
+        w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
+        sdf = (self.priors[vid] * w).sum(1)
+        return sdf, torch.from_numpy(inside).to(points.device)
