@@ -1,0 +1,119 @@
+"""The training losses of H3-Mapping (Sec. IV-D), as pure functions of per-ray / per-sample tensors.
+
+- RGB: L1 + S3IM (stochastic structural similarity over randomly re-patched ray batches);
+- depth: L1 over rays with valid measured depth;
+- free space: samples between the camera and the truncation band pushed to the truncation
+  value (L2), averaged per ray then over rays;
+- SDF: samples inside the truncation band fitted to the measured signed distance (L2), with the
+  paper's surface-aware rule: negative targets are dropped for samples past the second sign
+  change of the predicted SDF along the ray (objects thinner than the band).
+
+SDF values are in truncation units (metres / truncation), so the truncation value is 1 and a
+sample's target is (measured depth - sample depth) / truncation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    rgb: float = 0.5  # alpha_rgb (authors' config)
+    depth: float = 1.0  # alpha_d
+    sdf: float = 50000.0  # alpha_sdf
+    free_space: float = 10.0  # alpha_fs
+    s3im: bool = True
+    s3im_kernel: int = 4
+    s3im_stride: int = 4
+    s3im_repeats: int = 10
+    s3im_patch_width: int = 64
+
+
+def depth_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    valid = gt > 0
+    if not valid.any():
+        return pred.sum() * 0
+    return (pred[valid] - gt[valid]).abs().mean()
+
+
+def rgb_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    return (pred - gt).abs().mean()
+
+
+def _gaussian_window(k: int, sigma: float = 1.5, device=None, dtype=None) -> torch.Tensor:
+    x = torch.arange(k, device=device, dtype=dtype) - (k - 1) / 2
+    g = torch.exp(-x ** 2 / (2 * sigma ** 2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(3, 1, k, k).contiguous()
+
+
+def _ssim_map(x: torch.Tensor, y: torch.Tensor, win: torch.Tensor, stride: int) -> torch.Tensor:
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    conv = lambda t: F.conv2d(t, win, stride=stride, groups=3)  # noqa: E731
+    mx, my = conv(x), conv(y)
+    sxx = conv(x * x) - mx * mx
+    syy = conv(y * y) - my * my
+    sxy = conv(x * y) - mx * my
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+
+
+def s3im(pred: torch.Tensor, gt: torch.Tensor, kernel: int = 4, stride: int = 4, repeats: int = 10,
+         patch_width: int = 64, generator: torch.Generator | None = None) -> torch.Tensor:
+    """S3IM loss (Xie et al., ICCV 2023): 1 - SSIM of ray batches re-arranged into pseudo-images.
+
+    The first arrangement keeps the batch order, the other ``repeats - 1`` are random
+    permutations; they are laid side by side as one image ``patch_width`` rays tall.
+    Colours (R, 3) in [0, 1]; R is truncated to a multiple of ``patch_width``.
+    """
+    r = (len(pred) // patch_width) * patch_width
+    if r == 0:
+        return pred.sum() * 0
+    idx = [torch.arange(r, device=pred.device)]
+    for _ in range(repeats - 1):
+        idx.append(torch.randperm(r, device=pred.device, generator=generator))
+    idx = torch.cat(idx)
+
+    def image(c):  # (R*repeats, 3) -> (1, 3, patch_width, R*repeats/patch_width)
+        return c[idx].T.reshape(1, 3, -1, patch_width).transpose(2, 3)
+
+    win = _gaussian_window(kernel, device=pred.device, dtype=pred.dtype)
+    return 1 - _ssim_map(image(pred), image(gt), win, stride).mean()
+
+
+def sdf_targets(sample_depth: torch.Tensor, gt_depth: torch.Tensor, truncation: float) -> torch.Tensor:
+    """Target SDF (truncation units) of each sample: (measured depth - sample depth) / truncation."""
+    return (gt_depth[:, None] - sample_depth) / truncation
+
+
+def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: torch.Tensor,
+                       mask: torch.Tensor, truncation: float, surface_aware: bool = True
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(L_fs, L_sdf) over rays with valid depth; sdf (R, S) in truncation units, depths in metres.
+
+    Samples are in ray order and the valid ones (``mask``) form a prefix of each row, as the
+    sampler packs them, so a sign change is a change between neighbouring samples.
+    """
+    valid_ray = gt_depth > 0
+    target = sdf_targets(sample_depth, gt_depth, truncation)
+    m = mask & valid_ray[:, None]
+    fs = m & (target > 1.0)  # in front of the band: between the camera and D - truncation
+    tr = m & (target.abs() <= 1.0)
+    if surface_aware:
+        sgn = sdf.detach() >= 0
+        change = (sgn[:, 1:] != sgn[:, :-1]) & m[:, 1:] & m[:, :-1]
+        n_changes = torch.cat([torch.zeros_like(change[:, :1], dtype=torch.long), torch.cumsum(change.long(), 1)], 1)
+        tr = tr & ~((n_changes >= 2) & (target < 0))
+    z = sdf.sum() * 0
+
+    def per_ray_mean(err, sel):
+        cnt = sel.sum(1)
+        rays = cnt > 0
+        if not rays.any():
+            return z
+        return ((err * sel).sum(1)[rays] / cnt[rays]).mean()
+
+    return per_ray_mean((sdf - 1.0) ** 2, fs), per_ray_mean((sdf - target) ** 2, tr)

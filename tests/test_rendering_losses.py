@@ -1,0 +1,98 @@
+"""Volume-rendering weights and each loss on hand-made rays."""
+
+import math
+
+import pytest
+import torch
+
+from h3edge.mapping.losses import depth_l1, free_space_and_sdf, rgb_l1, s3im
+from h3edge.mapping.rendering import composite, render_weights
+
+TR = 0.05
+
+
+def ray_through_surface(surface=2.0, n=41, spacing=0.01, start=1.8):
+    d = start + spacing * torch.arange(n, dtype=torch.float64)
+    sdf = (surface - d) / TR  # exact SDF in truncation units
+    return d[None], sdf[None]
+
+
+def test_weights_peak_at_zero_crossing():
+    s = torch.tensor([-2.0, -0.1, 0.0, 0.1, 2.0])
+    w = render_weights(s, 0.05)
+    assert w[2] == pytest.approx(0.25) and w.argmax() == 2
+    assert w[0] == w[4] and w[1] == w[3]  # symmetric
+    assert torch.equal(render_weights(s, 0.05, torch.tensor([1, 1, 0, 1, 1.0]))[2], torch.tensor(0.0))
+
+
+def test_composite_recovers_surface_depth_and_colour():
+    # 1 mm steps resolve the 2.5 mm kernel: the depth is exact to 0.1 mm ...
+    d, sdf = ray_through_surface(2.003, n=401, spacing=0.001)
+    assert composite(sdf, d, None, beta=0.05).depth.item() == pytest.approx(2.003, abs=1e-4)
+    # ... while the authors' 1 cm steps pull it towards the nearest sample (here by 0.9 mm)
+    d, sdf = ray_through_surface(2.003)
+    col = torch.where((d < 2.003)[..., None], torch.tensor([1.0, 0, 0], dtype=torch.float64),
+                      torch.tensor([0, 0, 1.0], dtype=torch.float64))
+    out = composite(sdf, d, col, beta=0.05)
+    assert out.hit.item()
+    assert out.depth.item() == pytest.approx(2.003, abs=2e-3)
+    assert out.color[0].sum().item() == pytest.approx(1.0)
+    empty = composite(torch.full((1, 5), 50.0), torch.linspace(1, 2, 5)[None], None, beta=0.05)
+    assert not empty.hit.item() and empty.depth.item() == 0
+
+
+def test_depth_and_rgb_l1():
+    assert depth_l1(torch.tensor([1.0, 2.0, 5.0]), torch.tensor([1.5, 2.0, 0.0])).item() == pytest.approx(0.25)
+    assert rgb_l1(torch.zeros(4, 3), torch.full((4, 3), 0.2)).item() == pytest.approx(0.2)
+
+
+def test_s3im_zero_for_identical_and_grows_with_noise():
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(4096, 3, generator=g)
+    assert s3im(gt, gt, generator=g).item() == pytest.approx(0.0, abs=1e-6)
+    small = s3im((gt + 0.05 * torch.randn(4096, 3, generator=g)).clamp(0, 1), gt, generator=g).item()
+    big = s3im((gt + 0.3 * torch.randn(4096, 3, generator=g)).clamp(0, 1), gt, generator=g).item()
+    assert 0 < small < big
+    pred = gt.clone().requires_grad_(True)
+    s3im(pred * 0.9, gt, generator=g).backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
+
+
+def test_exact_sdf_has_zero_losses():
+    d, sdf = ray_through_surface(2.0, start=1.0, n=141)
+    mask = torch.ones_like(d, dtype=torch.bool)
+    fs, sd = free_space_and_sdf(sdf, d, torch.tensor([2.0], dtype=torch.float64), mask, TR)
+    # in front of the band the exact SDF exceeds the truncation (1), so the fs loss is not 0 there;
+    # the truncated target it is pulled to is 1
+    assert sd.item() == pytest.approx(0.0, abs=1e-12)
+    clipped = sdf.clamp(max=1.0)
+    fs0, _ = free_space_and_sdf(clipped, d, torch.tensor([2.0], dtype=torch.float64), mask, TR)
+    assert fs0.item() == pytest.approx(0.0, abs=1e-12) and fs.item() > 0
+
+
+def test_free_space_and_sdf_values():
+    d = torch.tensor([[1.0, 1.5, 1.98, 2.0, 2.02, 2.2]])
+    pred = torch.tensor([[0.0, 1.0, 0.0, 0.0, 0.0, 0.0]])
+    fs, sd = free_space_and_sdf(pred, d, torch.tensor([2.0]), torch.ones_like(d, dtype=torch.bool), TR)
+    assert fs.item() == pytest.approx((1.0 + 0.0) / 2)  # samples at 1.0 and 1.5 are free space
+    targets = torch.tensor([0.4, 0.0, -0.4])  # samples 1.98, 2.0, 2.02 are in the band
+    assert sd.item() == pytest.approx(float((targets ** 2).mean()), rel=1e-5)
+    # rays without valid depth and masked samples do not count
+    fs, sd = free_space_and_sdf(pred, d, torch.tensor([0.0]), torch.ones_like(d, dtype=torch.bool), TR)
+    assert fs.item() == 0 and sd.item() == 0
+
+
+def test_surface_aware_rule_drops_negative_targets_past_second_sign_change():
+    # a thin object: predicted SDF goes + - + before the measured surface at 2.0 m; samples past the
+    # second sign change with negative targets (behind the measurement) must not be supervised
+    d = torch.tensor([[1.97, 1.98, 1.99, 2.00, 2.01, 2.02, 2.03]])
+    gt = torch.tensor([2.0])
+    pred = torch.tensor([[0.5, -0.5, 0.5, 0.5, 0.5, 0.5, 0.5]])  # sign changes at samples 1 and 2
+    mask = torch.ones_like(d, dtype=torch.bool)
+    _, aware = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=True)
+    _, vanilla = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=False)
+    t = (gt - d[0]) / TR
+    e = (pred[0] - t) ** 2
+    assert vanilla.item() == pytest.approx(float(e.mean()), rel=1e-5)
+    assert aware.item() == pytest.approx(float(e[:4].mean()), rel=1e-5)  # samples 4..6 (t < 0) dropped
+    assert math.isfinite(aware.item())
