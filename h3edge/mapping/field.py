@@ -1,0 +1,96 @@
+"""The hierarchical hybrid field: SDF = octree prior + residual MLP(geometry hash features);
+colour = MLP(texture features).
+
+The texture features come from a :class:`TextureEncoder`. Here it is the uniform hash grid of
+H2-Mapping (:class:`UniformTexture`); issue 3/6 adds the quasi-heterogeneous encoder (space
+warps, one table with a hash function per warp, zero-padded concatenation) behind the same
+interface: ``out_dim`` and ``forward(points, voxel_index) -> (N, out_dim)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
+from h3edge.mapping.voxels import VoxelMap
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    geo_levels: int = 4  # L (geometry)
+    geo_features: int = 2  # F
+    geo_log2_table: int = 19  # T = 2^19
+    geo_level_scale: float = 2.0  # finest cell = voxel / 8
+    tex_levels: int = 4
+    tex_features: int = 2
+    tex_log2_table: int = 19
+    tex_level_scale: float = 3.0  # the paper's "scale difference 3": finest cell = voxel / 27
+    sdf_hidden: int = 64
+    sdf_layers: int = 5  # hidden layers of the SDF MLP (the authors' effective default)
+    color_hidden: int = 64
+    color_layers: int = 2
+    backend: str = "auto"  # hash-grid backend: auto | torch | numba
+
+
+def mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = n_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    mods.append(nn.Linear(d, n_out))
+    return nn.Sequential(*mods)
+
+
+class TextureEncoder(Protocol):
+    out_dim: int
+
+    def __call__(self, points: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor: ...
+
+
+class UniformTexture(nn.Module):
+    """H2-Mapping's texture grid: one multiresolution hash grid, no warps."""
+
+    def __init__(self, grid: HashGrid):
+        super().__init__()
+        self.grid = grid
+        self.out_dim = grid.spec.out_dim
+
+    def forward(self, points: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor:  # noqa: ARG002
+        return self.grid(points)
+
+
+class Field(nn.Module):
+    def __init__(self, cfg: FieldConfig, bound: np.ndarray, voxel_size: float, device="cpu"):
+        super().__init__()
+        self.cfg = cfg
+        base = int(np.ceil((bound[1] - bound[0]).max() / voxel_size))  # one level-0 cell per leaf voxel
+        geo = HashGridSpec(cfg.geo_levels, cfg.geo_features, cfg.geo_log2_table, base, cfg.geo_level_scale)
+        tex = HashGridSpec(cfg.tex_levels, cfg.tex_features, cfg.tex_log2_table, base, cfg.tex_level_scale)
+        self.geo_grid = HashGrid(geo, bound, backend=cfg.backend, seed=1, device=device)
+        self.texture: nn.Module = UniformTexture(HashGrid(tex, bound, backend=cfg.backend, seed=2, device=device))
+        self.sdf_mlp = mlp(geo.out_dim, cfg.sdf_hidden, cfg.sdf_layers, 1).to(device)
+        self.color_mlp = nn.Sequential(mlp(self.texture.out_dim, cfg.color_hidden, cfg.color_layers, 3),
+                                       nn.Sigmoid()).to(device)
+
+    def hash_grids(self) -> list[HashGrid]:
+        return [self.geo_grid, self.texture.grid]
+
+    def sdf(self, points: torch.Tensor, voxels: VoxelMap) -> tuple[torch.Tensor, torch.Tensor]:
+        """SDF (truncation units) = trilinear prior + residual, and the in-voxel mask."""
+        prior, inside = voxels.coarse_sdf(points)
+        return prior + self.sdf_mlp(self.geo_grid(points))[:, 0], inside
+
+    def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+        if voxel_index is None:
+            voxel_index = torch.zeros(len(points), dtype=torch.long, device=points.device)
+        return self.color_mlp(self.texture(points, voxel_index))
+
+    def sparse_step(self, lr: float) -> None:
+        for g in self.hash_grids():
+            g.sparse_adam_step(lr)
