@@ -121,3 +121,15 @@ def test_inference_stores_nothing(points):
     with torch.no_grad():
         y = grid(torch.tensor(points, dtype=torch.float32))
     assert y.shape == (len(points), SPEC.out_dim)
+
+
+def test_sparse_adam_backends_agree(points):
+    x = torch.tensor(points, dtype=torch.float32)
+    tables = {}
+    for b in BACKENDS:
+        grid = make_grid(b)
+        for _ in range(3):
+            (grid(x) ** 2).sum().backward()
+            grid.sparse_adam_step(lr=1e-2)
+        tables[b] = grid.table.detach()
+    assert torch.allclose(tables["torch"], tables["numba"], atol=1e-6)

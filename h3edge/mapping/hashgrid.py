@@ -179,7 +179,17 @@ def _numba_kernels():
                     grad_buf[row, f] = 0.0
                 touched[row] = False
 
-    return fwd, bwd, collect
+    @nb.njit(parallel=True, fastmath=True, cache=True)
+    def adam(table, m, v, rows, grads, lr, b1, b2, eps, c1, c2):
+        for k in nb.prange(rows.shape[0]):
+            r = rows[k]
+            for f in range(table.shape[1]):
+                g = grads[k, f]
+                m[r, f] = b1 * m[r, f] + (1 - b1) * g
+                v[r, f] = b2 * v[r, f] + (1 - b2) * g * g
+                table[r, f] -= lr * (m[r, f] / c1) / (math.sqrt(v[r, f] / c2) + eps)
+
+    return fwd, bwd, collect, adam
 
 
 class _NumbaEncode(torch.autograd.Function):
@@ -195,7 +205,7 @@ class _NumbaEncode(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         grid, x = ctx.grid, ctx.x
-        _, bwd, collect = grid._kernels()
+        _, bwd, collect, _ = grid._kernels()
         L, n = grid.spec.levels, len(x)
         if len(grid._touched_rows) < L * n * 8:  # reused across steps: 8 corners x L levels per point
             grid._touched_rows = np.empty(L * n * 8, np.int64)
@@ -287,12 +297,16 @@ class HashGrid(torch.nn.Module):
             return 0
         self.adam_steps += 1
         b1, b2 = betas
+        c1 = 1 - b1 ** self.adam_steps
+        c2 = 1 - b2 ** self.adam_steps
+        if self.backend == "numba":
+            self._kernels()[3](self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), rows.numpy(),
+                               g.numpy(), lr, b1, b2, eps, c1, c2)
+            return len(rows)
         m = self.adam_m[rows].mul_(b1).add_(g, alpha=1 - b1)
         v = self.adam_v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
         self.adam_m[rows] = m
         self.adam_v[rows] = v
-        c1 = 1 - b1 ** self.adam_steps
-        c2 = 1 - b2 ** self.adam_steps
         self.table[rows] -= lr * (m / c1) / ((v / c2).sqrt() + eps)
         return len(rows)
 
