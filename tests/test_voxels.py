@@ -82,3 +82,17 @@ def test_growth_keeps_existing_priors():
     after = dict(zip(vm.vertex_keys.tolist(), vm.priors.detach().numpy().tolist()))
     assert all(after[k] == v for k, v in before.items())  # set once, never overwritten or lost
     assert vm.prior_set.sum() > was_set.sum()
+
+
+def test_ids_are_stable_as_the_map_grows():
+    vm = VoxelMap(VoxelConfig(min_points=3))
+    vm.allocate(wall_depth(), INTR, POSE)
+    keys, verts = vm.voxel_keys.copy(), vm.voxel_vertices.copy()
+    vm.allocate(wall_depth(), INTR, look_at(np.array([1.5, 0.0, 0.0]), np.array([1.5, 1.0, 0.0])))
+    assert np.array_equal(vm.voxel_keys[:len(keys)], keys)  # append-only
+    assert np.array_equal(vm.voxel_vertices[:len(verts)], verts)
+    # every voxel's vertex ids point at its own corners
+    corners = unpack(vm.vertex_keys[vm.voxel_vertices])
+    assert np.array_equal(corners - unpack(vm.voxel_keys)[:, None, :], np.broadcast_to(
+        np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)]), corners.shape))
+    assert len(np.unique(vm.vertex_keys)) == len(vm.vertex_keys) == len(vm.priors)

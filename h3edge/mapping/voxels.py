@@ -3,9 +3,11 @@
 Leaf voxels of side ``voxel_size`` are allocated where a frame's back-projected valid depth puts
 at least ``min_points`` points, plus the face neighbour when the voxel's mean point lies within
 ``neighbour_margin`` (a fraction of the side) of that face. Voxels and their 8 corner vertices
-live in sorted int64 key arrays (coordinates packed 21 bits per axis), so lookups are
-``searchsorted`` calls and the map is unbounded in space; a voxel cap bounds memory, and frames
-that would exceed it allocate nothing more (the caller is told how many were refused).
+have stable ids in insertion order (append-only arrays, so optimiser state indexed by id stays
+valid as the map grows); int64 keys (coordinates packed 21 bits per axis) are found through a
+sorted index with ``searchsorted``, so the map is unbounded in space. Inserting k voxels costs
+O(k log k) plus an O(map) memory move, never a rebuild. A voxel cap bounds memory; voxels past it
+are refused and counted.
 
 SDF priors are stored in truncation units (metres / ``truncation``), as the authors do. A new
 voxel's 8 vertices are initialised once, projectively: prior = (measured depth - vertex z) /
@@ -49,6 +51,35 @@ def lookup(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return np.where(sorted_keys[i] == keys, i, -1)
 
 
+class KeyIndex:
+    """Append-only key -> id map (ids in insertion order) over a sorted index."""
+
+    def __init__(self) -> None:
+        self.keys = np.zeros(0, np.int64)  # by id
+        self._sorted = np.zeros(0, np.int64)
+        self._ids = np.zeros(0, np.int64)  # id of each sorted key
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def find(self, keys: np.ndarray) -> np.ndarray:
+        """Ids of ``keys``, -1 where absent."""
+        if len(self._sorted) == 0:
+            return np.full(len(keys), -1, np.int64)
+        i = lookup(self._sorted, keys)
+        return np.where(i >= 0, self._ids[np.maximum(i, 0)], -1)
+
+    def add(self, new_keys: np.ndarray) -> np.ndarray:
+        """Append keys that are not present yet (unique, absent); returns their ids."""
+        ids = np.arange(len(self.keys), len(self.keys) + len(new_keys))
+        order = np.argsort(new_keys)
+        pos = np.searchsorted(self._sorted, new_keys[order])
+        self._sorted = np.insert(self._sorted, pos, new_keys[order])
+        self._ids = np.insert(self._ids, pos, ids[order])
+        self.keys = np.concatenate([self.keys, new_keys])
+        return ids
+
+
 @dataclass(frozen=True)
 class VoxelConfig:
     voxel_size: float = 0.1  # m, octree leaf size (paper / authors: 0.1)
@@ -60,24 +91,33 @@ class VoxelConfig:
 
 
 class VoxelMap:
-    """Leaf voxels (sorted keys) and vertices (sorted keys) with SDF priors as a torch tensor.
+    """Leaf voxels and vertices with stable ids; SDF priors (a torch tensor) indexed by vertex id.
 
-    Indices into ``voxel_keys`` / ``vertex_keys`` change when voxels are inserted; callers
-    re-query after :meth:`allocate`. ``voxel_vertices`` maps each voxel to its 8 vertex indices.
+    ``voxel_vertices`` maps each voxel id to its 8 vertex ids. ``priors`` is replaced by a longer
+    tensor when vertices are added (ids of existing vertices are unchanged, so an optimiser's
+    per-element state can be carried over by padding).
     """
 
     def __init__(self, cfg: VoxelConfig = VoxelConfig(), device: str | torch.device = "cpu"):
         self.cfg = cfg
         self.device = torch.device(device)
-        self.voxel_keys = np.zeros(0, np.int64)
-        self.vertex_keys = np.zeros(0, np.int64)
+        self.voxels = KeyIndex()
+        self.vertices = KeyIndex()
         self.voxel_vertices = np.zeros((0, 8), np.int64)
         self.priors = torch.zeros(0, device=self.device, requires_grad=True)  # truncation units
         self.prior_set = np.zeros(0, bool)
         self.refused = 0  # voxels not allocated because of the cap
 
     def __len__(self) -> int:
-        return len(self.voxel_keys)
+        return len(self.voxels)
+
+    @property
+    def voxel_keys(self) -> np.ndarray:
+        return self.voxels.keys
+
+    @property
+    def vertex_keys(self) -> np.ndarray:
+        return self.vertices.keys
 
     def voxel_coords(self, points: np.ndarray) -> np.ndarray:
         return np.floor(points / self.cfg.voxel_size).astype(np.int64)
@@ -113,23 +153,17 @@ class VoxelMap:
         return new
 
     def _insert(self, new_keys: np.ndarray) -> None:
-        self.voxel_keys = np.union1d(self.voxel_keys, new_keys)
+        self.voxels.add(new_keys)
         corner_keys = pack((unpack(new_keys)[:, None, :] + CORNERS[None]).reshape(-1, 3))
-        old_keys, old_priors, old_set = self.vertex_keys, self.priors, self.prior_set
-        self.vertex_keys = np.union1d(old_keys, corner_keys)
-        # carry existing priors over to their new positions
-        pos = np.searchsorted(self.vertex_keys, old_keys)
-        priors = torch.zeros(len(self.vertex_keys), device=self.device)
-        priors[torch.from_numpy(pos).to(self.device)] = old_priors.detach()
-        self.priors = priors.requires_grad_(True)  # a new leaf: optimisers re-register it after growth
-        self.prior_set = np.zeros(len(self.vertex_keys), bool)
-        self.prior_set[pos] = old_set
-        all_corners = pack((unpack(self.voxel_keys)[:, None, :] + CORNERS[None]).reshape(-1, 3))
-        self.voxel_vertices = np.searchsorted(self.vertex_keys, all_corners).reshape(-1, 8)
+        fresh = np.unique(corner_keys[self.vertices.find(corner_keys) < 0])
+        self.vertices.add(fresh)
+        self.voxel_vertices = np.concatenate([self.voxel_vertices, self.vertices.find(corner_keys).reshape(-1, 8)])
+        grown = torch.zeros(len(fresh), device=self.device)
+        self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
+        self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
 
     def _init_priors(self, new_keys: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        vox = lookup(self.voxel_keys, new_keys)
-        vid = self.voxel_vertices[vox]  # (n, 8)
+        vid = self.voxel_vertices[self.voxels.find(new_keys)]  # (n, 8)
         pos = unpack(self.vertex_keys[vid.reshape(-1)]) * self.cfg.voxel_size
         uv, z = project(pos.astype(np.float64), intr, c2w)
         with np.errstate(invalid="ignore"):
@@ -153,7 +187,7 @@ class VoxelMap:
         """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel."""
         p = points.detach().cpu().numpy().astype(np.float64) / self.cfg.voxel_size
         g = np.floor(p).astype(np.int64)
-        vox = lookup(self.voxel_keys, pack(g))
+        vox = self.voxels.find(pack(g))
         inside = vox >= 0
         f = torch.from_numpy((p - g).astype(np.float32)).to(points.device)
         vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
