@@ -1,0 +1,104 @@
+"""Keyframe policy: insertion, coverage-maximising selection, adaptive pruning (Sec. IV-B).
+
+Insertion: a frame becomes a keyframe when the IoU of its observed voxel set with the last
+keyframe's drops below ``insert_iou`` (0.85) or ``max_interval`` (10) frames have passed.
+
+Selection, per training iteration: greedily pick up to K keyframes, each time the one whose
+still-unobserved voxels carry the highest score sum; its voxels become observed. The observed
+state persists across iterations; once every voxel is observed it resets, and with adaptive
+pruning the keyframes not selected during that round are removed. Each keyframe carries a score
+per observed voxel: 1 everywhere gives H2-Mapping's voxel-count coverage; H3's gradient-aided
+score max(cnt^2 * g, 1) plugs in through the same array.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    insert_iou: float = 0.85
+    max_interval: int = 10
+    per_iteration: int = 8  # K
+    adaptive_pruning: bool = True
+
+
+@dataclass
+class Keyframe:
+    frame_id: int
+    voxels: np.ndarray  # unique voxel ids the frame observes
+    scores: np.ndarray  # score per voxel (same order)
+    payload: object = None  # the stored frame (compressed by the caller)
+    selected_this_round: bool = False
+
+
+@dataclass
+class KeyframeSet:
+    cfg: KeyframeConfig = field(default_factory=KeyframeConfig)
+    keyframes: list[Keyframe] = field(default_factory=list)
+    observed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    frames_since_insert: int = 0
+    pruned: int = 0
+
+    def should_insert(self, voxels: np.ndarray) -> bool:
+        """Insertion rule for a frame observing ``voxels`` (unique ids); counts the interval."""
+        self.frames_since_insert += 1
+        if not self.keyframes:
+            return True
+        last = self.keyframes[-1].voxels
+        inter = len(np.intersect1d(voxels, last, assume_unique=True))
+        union = len(voxels) + len(last) - inter
+        iou = inter / union if union else 1.0
+        return iou < self.cfg.insert_iou or self.frames_since_insert >= self.cfg.max_interval
+
+    def insert(self, frame_id: int, voxels: np.ndarray, scores: np.ndarray | None = None, payload=None) -> None:
+        scores = np.ones(len(voxels)) if scores is None else np.asarray(scores, float)
+        if scores.shape != voxels.shape:
+            raise ValueError("one score per voxel")
+        self.keyframes.append(Keyframe(frame_id, voxels, scores, payload))
+        self.frames_since_insert = 0
+
+    def _grow(self, n_voxels: int) -> None:
+        if len(self.observed) < n_voxels:
+            self.observed = np.concatenate([self.observed, np.zeros(n_voxels - len(self.observed), bool)])
+
+    def select(self) -> list[Keyframe]:
+        """Up to K keyframes covering the highest-scoring unobserved voxels (see module doc)."""
+        if not self.keyframes:
+            return []
+        self._grow(1 + max(int(k.voxels.max(initial=-1)) for k in self.keyframes))
+        known = np.zeros(len(self.observed), bool)
+        for k in self.keyframes:
+            known[k.voxels] = True
+        if self.observed[known].all():
+            self._end_round()
+            known[:] = False
+            for k in self.keyframes:
+                known[k.voxels] = True
+        chosen: list[Keyframe] = []
+        for _ in range(min(self.cfg.per_iteration, len(self.keyframes))):
+            gains = [0.0 if k in chosen else float(k.scores[~self.observed[k.voxels]].sum()) for k in self.keyframes]
+            best = int(np.argmax(gains))
+            if gains[best] <= 0:
+                break
+            kf = self.keyframes[best]
+            chosen.append(kf)
+            kf.selected_this_round = True
+            self.observed[kf.voxels] = True
+        return chosen
+
+    def _end_round(self) -> None:
+        """All voxels observed: reset, and prune the keyframes the round never selected."""
+        if self.cfg.adaptive_pruning:
+            keep = [k for k in self.keyframes if k.selected_this_round]
+            keep_last = self.keyframes[-1]  # the insertion rule compares against it
+            if keep_last not in keep:
+                keep.append(keep_last)
+            self.pruned += len(self.keyframes) - len(keep)
+            self.keyframes = keep
+        for k in self.keyframes:
+            k.selected_this_round = False
+        self.observed[:] = False

@@ -1,0 +1,69 @@
+"""Keyframe insertion rules, greedy coverage selection, round reset and adaptive pruning."""
+
+import numpy as np
+import pytest
+
+from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
+
+
+def ids(*r):
+    return np.arange(*r)
+
+
+def test_insertion_rules():
+    ks = KeyframeSet(KeyframeConfig(insert_iou=0.85, max_interval=10))
+    assert ks.should_insert(ids(0, 100))
+    ks.insert(0, ids(0, 100))
+    assert not ks.should_insert(ids(0, 95))  # IoU 0.95
+    assert ks.should_insert(ids(20, 120))  # IoU 80/120 = 0.67
+    ks2 = KeyframeSet(KeyframeConfig(max_interval=10))
+    ks2.insert(0, ids(0, 100))
+    decisions = [ks2.should_insert(ids(0, 100)) for _ in range(10)]
+    assert decisions == [False] * 9 + [True]  # the 10th frame since the last keyframe
+
+
+def test_greedy_coverage_and_persistence():
+    ks = KeyframeSet(KeyframeConfig(per_iteration=2, adaptive_pruning=False))
+    ks.insert(0, ids(0, 10))
+    ks.insert(1, ids(5, 30))  # largest
+    ks.insert(2, ids(28, 40))
+    ks.insert(3, ids(40, 44))
+    first = [k.frame_id for k in ks.select()]
+    assert first == [1, 2]  # 25 voxels, then 10 new ones (38, 39 are new; 28, 29 covered)
+    second = [k.frame_id for k in ks.select()]
+    assert second == [0, 3]  # only the unobserved remain: 0..4 and 40..43
+    assert ks.observed[:44].all()
+    third = [k.frame_id for k in ks.select()]  # round over: reset, start again
+    assert third == [1, 2]
+
+
+def test_scores_steer_selection():
+    ks = KeyframeSet(KeyframeConfig(per_iteration=1))
+    ks.insert(0, ids(0, 20))  # many weak-texture voxels
+    ks.insert(1, ids(20, 25), scores=np.full(5, 10.0))  # few rich-texture voxels seen close up
+    assert ks.select()[0].frame_id == 1
+
+
+def test_adaptive_pruning_removes_unselected():
+    ks = KeyframeSet(KeyframeConfig(per_iteration=1, adaptive_pruning=True))
+    ks.insert(0, ids(0, 10))
+    ks.insert(1, ids(0, 5))  # redundant: fully covered by frame 0
+    ks.insert(2, ids(10, 12))
+    assert [k.frame_id for k in ks.select()] == [0]
+    assert [k.frame_id for k in ks.select()] == [2]
+    ks.select()  # all observed: the round ends; frame 1 was never selected -> pruned
+    assert [k.frame_id for k in ks.keyframes] == [0, 2] and ks.pruned == 1
+
+
+def test_last_keyframe_survives_pruning():
+    ks = KeyframeSet(KeyframeConfig(per_iteration=1))
+    ks.insert(0, ids(0, 10))
+    ks.insert(1, ids(0, 3))
+    ks.select()
+    ks.select()
+    assert [k.frame_id for k in ks.keyframes] == [0, 1]
+
+
+def test_scores_must_match():
+    with pytest.raises(ValueError):
+        KeyframeSet().insert(0, ids(0, 3), scores=np.ones(2))
