@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from h3edge.geometry.camera import Intrinsics, look_at
-from h3edge.mapping.voxels import VoxelConfig, VoxelMap, lookup, pack, unpack
+from h3edge.mapping.voxels import CORNERS, VoxelConfig, VoxelMap, lookup, pack, unpack
 
 INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 WALL_Y = 2.03  # wall plane y = 2.03, camera at the origin looking along +y
@@ -93,6 +93,5 @@ def test_ids_are_stable_as_the_map_grows():
     assert np.array_equal(vm.voxel_vertices[:len(verts)], verts)
     # every voxel's vertex ids point at its own corners
     corners = unpack(vm.vertex_keys[vm.voxel_vertices])
-    assert np.array_equal(corners - unpack(vm.voxel_keys)[:, None, :], np.broadcast_to(
-        np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)]), corners.shape))
+    assert np.array_equal(corners - unpack(vm.voxel_keys)[:, None, :], np.broadcast_to(CORNERS, corners.shape))
     assert len(np.unique(vm.vertex_keys)) == len(vm.vertex_keys) == len(vm.priors)

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from h3edge.mapping.voxels import CORNERS, unpack
+from h3edge.mapping.voxels import CORNERS, pack, unpack
 
 SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) metres -> SDF (N,), any positive-outside unit
 ColorFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) -> RGB (N, 3) in [0, 1]
@@ -69,8 +69,6 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
 def voxels_near_surface(sdf_fn: SdfFn, bound: np.ndarray, voxel_size: float, margin: float) -> np.ndarray:
     """Keys of voxels in ``bound`` whose corners' |SDF| (metres) stays under ``margin`` somewhere:
     a helper for analytic tests and the TSDF peer."""
-    from h3edge.mapping.voxels import pack
-
     lo = np.floor(bound[0] / voxel_size).astype(int)
     hi = np.ceil(bound[1] / voxel_size).astype(int)
     ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)

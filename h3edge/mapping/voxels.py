@@ -142,7 +142,8 @@ class VoxelMap:
                 nb = base[near].copy()
                 nb[:, axis] += side
                 cand.append(pack(nb))
-        new = np.setdiff1d(np.unique(np.concatenate(cand)), self.voxel_keys, assume_unique=True)
+        cand = np.unique(np.concatenate(cand))
+        new = cand[self.voxels.find(cand) < 0]  # the sorted index answers; no re-sort of the map
         room = self.cfg.max_voxels - len(self.voxel_keys)
         if len(new) > room:
             self.refused += len(new) - max(room, 0)
@@ -155,9 +156,12 @@ class VoxelMap:
     def _insert(self, new_keys: np.ndarray) -> None:
         self.voxels.add(new_keys)
         corner_keys = pack((unpack(new_keys)[:, None, :] + CORNERS[None]).reshape(-1, 3))
-        fresh = np.unique(corner_keys[self.vertices.find(corner_keys) < 0])
-        self.vertices.add(fresh)
-        self.voxel_vertices = np.concatenate([self.voxel_vertices, self.vertices.find(corner_keys).reshape(-1, 8)])
+        ids = self.vertices.find(corner_keys)
+        missing = ids < 0
+        fresh = np.unique(corner_keys[missing])
+        fresh_ids = self.vertices.add(fresh)
+        ids[missing] = fresh_ids[np.searchsorted(fresh, corner_keys[missing])]
+        self.voxel_vertices = np.concatenate([self.voxel_vertices, ids.reshape(-1, 8)])
         grown = torch.zeros(len(fresh), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
