@@ -3,7 +3,8 @@
     h3edge sim make OUT [--seed S --frames N --width W --height H --preset default|tiny]
     h3edge sim sheet SEQUENCE OUT.png [--frames N]
     h3edge eval SEQUENCE [--mesh MESH.ply] [--json OUT.json]
-    h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job
+    h3edge map SEQUENCE --out DIR [--profile P --frames N --stride S --device D --no-eval]
+    h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job: make, map, evaluate
 """
 
 from __future__ import annotations
@@ -63,23 +64,44 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    """Make (or reuse) the bundled simulated scene and evaluate its GT mesh against itself."""
-    import trimesh
+def _print_run(run: dict, out: Path) -> None:
+    stats = run["stats"]
+    print(run["tables"])
+    print(f"\n{stats['frames_mapped']} frames mapped ({sum(stats['dropped'].values())} dropped) in "
+          f"{run['mapping_wall_s']:.1f} s, {stats['voxels']} voxels, {stats['keyframes']} keyframes; "
+          f"mesh {run['mesh_vertices']} vertices; outputs in {out}/")
+
+
+def _cmd_map(args: argparse.Namespace) -> int:
+    import torch
 
     from h3edge.config import load_profile
-    from h3edge.eval.evaluate import evaluate, format_table
+    from h3edge.io import open_sequence
+    from h3edge.mapping.offline import run_offline
+
+    profile = load_profile(args.profile)
+    if args.device:
+        profile = dataclasses.replace(profile, mapper=dataclasses.replace(profile.mapper, device=args.device))
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seq = open_sequence(args.sequence)
+    run = run_offline(seq, profile, Path(args.out), frames=args.frames, stride=args.stride,
+                      evaluate_map=not args.no_eval)
+    _print_run(run, Path(args.out))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    """Make (or reuse) the bundled simulated scene, map it, evaluate, print metrics and timings."""
+    from h3edge.config import load_profile
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.offline import run_offline
     from h3edge.sim.make import PRESETS, ensure_scene
 
     out = Path(args.out)
     scene = ensure_scene(out / f"scene_{args.preset}", PRESETS[args.preset])
-    seq = ReplicaSequence(scene)
-    res = evaluate(seq, mesh=trimesh.load(seq.gt_mesh_path, process=False), cfg=load_profile(args.profile).eval)
-    table = format_table(res, f"GT mesh vs itself on the simulated scene ({args.preset})")
-    (out / "metrics.json").write_text(json.dumps(res, indent=1) + "\n")
-    (out / "metrics.md").write_text(table + "\n")
-    print(table)
+    run = run_offline(ReplicaSequence(scene), load_profile(args.profile), out / "map")
+    _print_run(run, out / "map")
     return 0
 
 
@@ -113,7 +135,18 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", help="write the metrics here")
     ev.set_defaults(func=_cmd_eval)
 
-    demo = sub.add_parser("demo", help="main job on the bundled simulated scene")
+    mp = sub.add_parser("map", help="map a sequence offline: mesh, renders, metrics, timings")
+    mp.add_argument("sequence")
+    mp.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
+    mp.add_argument("--out", required=True, help="run directory to write")
+    mp.add_argument("--frames", type=int, help="map only the first N (strided) frames")
+    mp.add_argument("--stride", type=int, default=1, help="use every n-th frame")
+    mp.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
+    mp.add_argument("--threads", type=int, help="torch CPU threads")
+    mp.add_argument("--no-eval", action="store_true", help="skip evaluation")
+    mp.set_defaults(func=_cmd_map)
+
+    demo = sub.add_parser("demo", help="make the bundled simulated scene, map it, evaluate (README's main job)")
     demo.add_argument("--out", default="out/demo")
     demo.add_argument("--preset", choices=["default", "tiny"], default="default")
     demo.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")

@@ -11,10 +11,18 @@ from __future__ import annotations
 import dataclasses
 import tomllib
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 from pathlib import Path
 
 from h3edge.eval.evaluate import EvalConfig
+from h3edge.mapping.field import FieldConfig
+from h3edge.mapping.keyframes import KeyframeConfig
+from h3edge.mapping.losses import LossWeights
+from h3edge.mapping.mapper import MapperConfig, MapSettings
+from h3edge.mapping.render import RenderConfig
+from h3edge.mapping.trainer import TrainConfig
+from h3edge.mapping.voxels import VoxelConfig
 
 PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
 
@@ -26,7 +34,18 @@ class ProfileError(ValueError):
 @dataclass(frozen=True)
 class Profile:
     name: str = "default"
-    eval: EvalConfig = field(default_factory=EvalConfig)
+    mapper: MapperConfig = dc_field(default_factory=MapperConfig)
+    voxels: VoxelConfig = dc_field(default_factory=VoxelConfig)
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    train: TrainConfig = dc_field(default_factory=TrainConfig)
+    losses: LossWeights = dc_field(default_factory=LossWeights)
+    keyframes: KeyframeConfig = dc_field(default_factory=KeyframeConfig)
+    render: RenderConfig = dc_field(default_factory=RenderConfig)
+    eval: EvalConfig = dc_field(default_factory=EvalConfig)
+
+    def map_settings(self) -> MapSettings:
+        return MapSettings(self.mapper, self.voxels, self.field, self.train, self.losses, self.keyframes,
+                           self.render)
 
 
 def _coerce(value, tp, where: str):
@@ -44,6 +63,8 @@ def _section(cls, table: dict, where: str):
     for key, value in table.items():
         if key not in names:
             raise ProfileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
+        if hints[key] not in (int, float, str, bool):
+            raise ProfileError(f"{where}: {key!r} is not settable here (it has its own table)")
         kwargs[key] = _coerce(value, hints[key], f"{where}.{key}")
     return cls(**kwargs)
 

@@ -81,10 +81,17 @@ class Field(nn.Module):
     def hash_grids(self) -> list[HashGrid]:
         return [self.geo_grid, self.texture.grid]
 
-    def sdf(self, points: torch.Tensor, voxels: VoxelMap) -> tuple[torch.Tensor, torch.Tensor]:
-        """SDF (truncation units) = trilinear prior + residual, and the in-voxel mask."""
-        prior, inside = voxels.coarse_sdf(points)
-        return prior + self.sdf_mlp(self.geo_grid(points))[:, 0], inside
+    def sdf(self, points: torch.Tensor, voxels: VoxelMap, located: tuple[np.ndarray, np.ndarray] | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+        """SDF (truncation units) = trilinear prior + residual, and the in-voxel mask. Points outside
+        the allocated voxels get 0 and must be masked by the caller (the residual is not evaluated)."""
+        prior, inside = voxels.coarse_sdf(points, located)
+        idx = torch.nonzero(inside).squeeze(1)
+        if len(idx) == len(points):
+            return prior + self.sdf_mlp(self.geo_grid(points))[:, 0], inside
+        # outside the allocated voxels the SDF is undefined (masked everywhere): no residual there
+        res = self.sdf_mlp(self.geo_grid(points[idx]))[:, 0]
+        return prior.index_add(0, idx, res), inside
 
     def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
         if voxel_index is None:

@@ -18,7 +18,7 @@ import torch
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
 from h3edge.mapping.rendering import composite
-from h3edge.mapping.voxels import VoxelMap
+from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
 
 @dataclass(frozen=True)
@@ -55,16 +55,23 @@ def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float,
 
 
 def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
-               cfg: TrainConfig, generator: torch.Generator | None = None) -> dict[str, float]:
-    """Forward, losses, backward, dense Adam on MLPs and priors, sparse Adam on hash tables."""
+               cfg: TrainConfig, generator: torch.Generator | None = None,
+               prior_opt: PriorAdam | None = None) -> dict[str, float]:
+    """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
+    lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows."""
     tr = voxels.cfg.truncation
     t, b0 = sample_depths(rays.depth, cfg, tr, generator)
     r, s = t.shape
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
-    sdf, inside = field_.sdf(pts.reshape(-1, 3), voxels)
+    flat = pts.reshape(-1, 3)
+    vox, frac = voxels.locate(flat.detach().cpu().numpy())
+    sdf, inside = field_.sdf(flat, voxels, (vox, frac))
     sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
     band_pts = pts[:, b0:].reshape(-1, 3)
-    col = field_.color(band_pts).reshape(r, s - b0, 3)
+    band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
+    band_in = torch.nonzero(band_vox >= 0).squeeze(1)  # colour only where it can weigh
+    col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
+        0, band_in, field_.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
     out = composite(sdf[:, b0:], t[:, b0:], col, cfg.beta, inside[:, b0:])
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
     order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
@@ -81,6 +88,8 @@ def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
+    if prior_opt is not None:
+        prior_opt.step(voxels)
     field_.sparse_step(cfg.lr)
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
             "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean())}

@@ -187,15 +187,96 @@ class VoxelMap:
             self.priors.data[t] = torch.from_numpy(values[fresh].astype(np.float32)).to(self.device)
             self.prior_set[targets[fresh]] = True
 
-    def coarse_sdf(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel."""
-        p = points.detach().cpu().numpy().astype(np.float64) / self.cfg.voxel_size
+    def locate(self, points: np.ndarray, eps: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel id of each point (-1 outside the map) and its position inside that voxel in [0, 1]^3.
+
+        A point on a voxel face (within ``eps`` voxels) belongs to either voxel sharing it: if the
+        voxel ``floor`` picks is not allocated, the neighbour across that face is tried. Priors are
+        shared at vertices, so the trilinear value is the same from both sides; this is what lets
+        mesh extraction evaluate lattice points on the surface of the allocated region.
+        """
+        p = np.asarray(points, np.float64) / self.cfg.voxel_size
         g = np.floor(p).astype(np.int64)
         vox = self.voxels.find(pack(g))
+        miss = vox < 0
+        if miss.any():
+            pm, gm = p[miss], g[miss]
+            a = np.round(pm).astype(np.int64)
+            on_face = np.abs(pm - a) < eps
+            lo, hi = np.where(on_face, a - 1, gm), np.where(on_face, a, gm)
+            vm = np.full(len(pm), -1, np.int64)
+            for c in range(8):
+                bits = CORNERS[c].astype(bool)
+                if not on_face[:, bits].any() and c:
+                    continue
+                cand = np.where(bits[None], hi, lo)
+                todo = vm < 0
+                found = self.voxels.find(pack(cand[todo]))
+                idx = np.flatnonzero(todo)[found >= 0]
+                vm[idx] = found[found >= 0]
+                gm[idx] = cand[idx]
+            vox[miss], g[miss] = vm, gm
+        return vox, np.clip(p - g, 0.0, 1.0)
+
+    def voxel_ids(self, points: torch.Tensor) -> torch.Tensor:
+        """Voxel id (long, -1 outside the map) of each point (N, 3), on the points' device."""
+        vox, _ = self.locate(points.detach().cpu().numpy())
+        return torch.from_numpy(vox).to(points.device)
+
+    def coarse_sdf(self, points: torch.Tensor, located: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel
+        (0 outside); ``located`` = :meth:`locate`'s answer for these points, when the caller has it."""
+        vox, frac = self.locate(points.detach().cpu().numpy()) if located is None else located
         inside = vox >= 0
-        f = torch.from_numpy((p - g).astype(np.float32)).to(points.device)
+        f = torch.from_numpy(frac.astype(np.float32)).to(points.device)
         vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
         corners = torch.from_numpy(CORNERS).to(points.device).bool()
         w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
-        sdf = (self.priors[vid] * w).sum(1)
+        sdf = (self.priors[vid] * w).sum(1) * torch.from_numpy(inside).to(points.device)
         return sdf, torch.from_numpy(inside).to(points.device)
+
+    def dense_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """(origin ijk (3,), int32 grid of voxel ids over the map's bounding box, -1 = empty):
+        constant-time lookups for ray marching (size = the map's bounding box in voxels)."""
+        ijk = unpack(self.voxel_keys)
+        if len(ijk) == 0:
+            return np.zeros(3, np.int64), np.full((1, 1, 1), -1, np.int32)
+        o = ijk.min(0)
+        grid = np.full(tuple(ijk.max(0) - o + 1), -1, np.int32)
+        grid[tuple((ijk - o).T)] = np.arange(len(ijk), dtype=np.int32)
+        return o, grid
+
+
+class PriorAdam:
+    """Lazy Adam for the SDF priors: updates only vertices with a gradient, and keeps its state
+    when :class:`VoxelMap` grows the prior tensor (state is padded, ids are stable)."""
+
+    def __init__(self, lr: float = 1e-2, betas=(0.9, 0.999), eps: float = 1e-15):
+        self.lr, self.betas, self.eps = lr, betas, eps
+        self.m = torch.zeros(0)
+        self.v = torch.zeros(0)
+        self.steps = 0
+
+    @torch.no_grad()
+    def step(self, voxels: VoxelMap) -> int:
+        p = voxels.priors
+        if p.grad is None:
+            return 0
+        if len(self.m) < len(p):
+            pad = torch.zeros(len(p) - len(self.m), device=p.device)
+            self.m = torch.cat([self.m.to(p.device), pad])
+            self.v = torch.cat([self.v.to(p.device), pad])
+        g = p.grad
+        rows = torch.nonzero(g).squeeze(1)
+        p.grad = None
+        if len(rows) == 0:
+            return 0
+        self.steps += 1
+        b1, b2 = self.betas
+        gr = g[rows]
+        m = self.m[rows].mul_(b1).add_(gr, alpha=1 - b1)
+        v = self.v[rows].mul_(b2).addcmul_(gr, gr, value=1 - b2)
+        self.m[rows], self.v[rows] = m, v
+        p[rows] -= self.lr * (m / (1 - b1 ** self.steps)) / ((v / (1 - b2 ** self.steps)).sqrt() + self.eps)
+        return len(rows)

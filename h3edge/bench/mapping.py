@@ -1,0 +1,188 @@
+"""Benchmark: the H3 mapper vs a TSDF-fusion peer on the same frames, side by side (issue 2/6).
+
+Datasets:
+- ``sim``: the default simulated scene (400 frames 640x480, held-out views between them);
+- ``replica``: real Replica office0 geometry (``../shared/data/replica_office0``, research-only
+  terms: read in place, never copied into the repository): its GT mesh ray-cast with vertex colours
+  along every ``--replica-stride``-th of the 2000 real poses, held-out views at the poses half-way
+  between two used ones. The rendered sequence is cached under ``--work``.
+
+Peer: Open3D's ``VoxelBlockGrid`` TSDF fusion (CPU) when ``open3d`` imports, at ``--tsdf-voxel``
+(1 cm) with a 4-voxel truncation; its mesh is rendered with vertex colours for PSNR / SSIM / Depth L1.
+Both run in this process on the same frames; per-frame time is the median of the per-frame
+integration (TSDF) or mapping (h3edge) time, frame reading excluded. Output: a markdown table
+and JSON.
+
+    python -m h3edge.bench.mapping [--datasets sim replica] [--profile x86-cpu] [--out docs/bench_mapping]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from h3edge.config import load_profile
+from h3edge.eval.evaluate import evaluate
+from h3edge.geometry.raycast import MeshRaycaster
+from h3edge.io.replica import ReplicaSequence
+from h3edge.io.sequence import read_pose_rows, write_color, write_depth, write_pose_rows
+from h3edge.mapping.offline import run_offline
+
+log = logging.getLogger("h3edge.bench.mapping")
+REPLICA = Path(__file__).resolve().parents[3] / "shared" / "data" / "replica_office0"
+
+
+def render_replica(root: Path, out: Path, stride: int) -> Path:
+    """Ray-cast Replica office0's GT mesh along every ``stride``-th real pose (cached)."""
+    from h3edge.io.replica import _intrinsics_from_file, find_intrinsics
+
+    done = out / "meta.json"
+    if done.is_file() and json.loads(done.read_text()).get("stride") == stride:
+        return out
+    intr, scale = _intrinsics_from_file(find_intrinsics(root / "office0"))
+    poses = read_pose_rows(root / "office0" / "traj.txt")
+    mesh = trimesh.load(root / "office0_mesh.ply", process=False)
+    caster = MeshRaycaster(mesh.vertices, mesh.faces)
+    colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    train = np.arange(0, len(poses), stride)
+    held = train[::2][:-1] + stride // 2
+    for sub, idx in (("", train), ("heldout", held)):
+        d = out / sub if sub else out
+        (d / "results").mkdir(parents=True, exist_ok=True)
+        for k, i in enumerate(idx):
+            rgb, depth = caster.render_vertex_colors(intr, poses[i], colors)
+            write_color(d / "results" / f"frame{k:06d}.jpg", rgb)
+            write_depth(d / "results" / f"depth{k:06d}.png", depth, scale)
+        write_pose_rows(d / "traj.txt", poses[idx])
+        (d / "timestamps.txt").write_text("".join(f"{i / 30:.6f}\n" for i in idx))
+        (d / "intrinsics.json").write_text(json.dumps({**intr.to_dict(), "depth_scale": scale}) + "\n")
+    mesh.export(out / "gt_mesh.ply")
+    done.write_text(json.dumps({"source": str(root), "stride": stride, "frames": len(train)}) + "\n")
+    return out
+
+
+def _open3d():
+    """Import Open3D; its CPU wheel links libusb, which the wheel from ``libusb-package`` provides."""
+    try:
+        import ctypes
+        import os
+
+        import libusb_package
+
+        ctypes.CDLL(os.path.join(os.path.dirname(libusb_package.__file__), "libusb-1.0.so"), mode=ctypes.RTLD_GLOBAL)
+    except (ImportError, OSError):
+        pass
+    import open3d as o3d
+
+    return o3d
+
+
+def tsdf_peer(seq, voxel: float, frames: int | None) -> tuple[trimesh.Trimesh, list[float]]:
+    """Open3D VoxelBlockGrid TSDF fusion of ``seq``; returns the coloured mesh and per-frame seconds."""
+    o3d = _open3d()
+    o3c = o3d.core
+    dev = o3c.Device("CPU:0")
+    vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
+                                        ((1), (1), (3)), voxel, 16, 100_000, dev)
+    K = o3c.Tensor(seq.intrinsics.K, o3c.float64)
+    times = []
+    n = len(seq) if frames is None else min(frames, len(seq))
+    for i in range(n):
+        f = seq[i]
+        t0 = time.perf_counter()
+        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.depth, np.float32))).to(dev)
+        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color.astype(np.float32) / 255))).to(dev)
+        ext = o3c.Tensor(np.linalg.inv(f.pose), o3c.float64)
+        blocks = vbg.compute_unique_block_coordinates(depth, K, ext, 1.0, 10.0, 4.0)
+        vbg.integrate(blocks, depth, color, K, K, ext, 1.0, 10.0, 4.0)
+        times.append(time.perf_counter() - t0)
+    m = vbg.extract_triangle_mesh().to_legacy()
+    mesh = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=False)
+    rgb = np.clip(np.asarray(m.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
+    mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
+    return mesh, times
+
+
+def _row(name: str, per_frame: list[float], res: dict) -> dict:
+    g, h, t = res.get("geometry", {}), res.get("heldout_views", {}), res.get("train_views", {})
+    return {"method": name, "frame_ms_median": 1000 * float(np.median(per_frame)),
+            "accuracy_cm": g.get("accuracy_cm"), "completion_cm": g.get("completion_cm"),
+            "completion_ratio": g.get("completion_ratio"),
+            "psnr_train_db": t.get("psnr_db"), "psnr_heldout_db": h.get("psnr_db"), "ssim_heldout": h.get("ssim"),
+            "depth_l1_train_cm": t.get("depth_l1_cm"), "depth_l1_heldout_cm": h.get("depth_l1_cm")}
+
+
+def format_rows(title: str, rows: list[dict]) -> str:
+    f = lambda v, p=2: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
+    out = [f"### {title}", "", "| method | frame [ms] median | Acc [cm] | Comp [cm] | Comp ratio | PSNR train | "
+           "PSNR held-out | SSIM held-out | Depth L1 train [cm] | Depth L1 held-out [cm] |", "|---" * 10 + "|"]
+    for r in rows:
+        out.append(f"| {r['method']} | {f(r['frame_ms_median'], 0)} | {f(r['accuracy_cm'])} | {f(r['completion_cm'])} | "
+                   f"{f(100 * r['completion_ratio'] if r['completion_ratio'] is not None else None, 1)} % | "
+                   f"{f(r['psnr_train_db'])} | {f(r['psnr_heldout_db'])} | {f(r['ssim_heldout'], 3)} | "
+                   f"{f(r['depth_l1_train_cm'], 3)} | {f(r['depth_l1_heldout_cm'], 3)} |")
+    return "\n".join(out)
+
+
+def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_voxel: float) -> dict:
+    log.info("%s: h3edge mapper (%s), %d frames", name, profile.name, len(seq) if frames is None else frames)
+    run = run_offline(seq, profile, work / f"{name}_h3edge", frames=frames)
+    rows = [_row(f"h3edge ({profile.name})", run["mapper"].timings.samples["frame"], run["metrics"])]
+    comps = run["mapper"].timings.summary()
+    try:
+        log.info("%s: TSDF peer (Open3D VoxelBlockGrid, %.0f mm voxels)", name, 1000 * tsdf_voxel)
+        mesh, times = tsdf_peer(seq, tsdf_voxel, frames)
+        mesh.export(work / f"{name}_tsdf_mesh.ply")
+        rows.append(_row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", times, evaluate(seq, mesh=mesh, cfg=profile.eval)))
+    except ImportError as e:
+        log.warning("TSDF peer skipped: %s", e)
+    return {"dataset": name, "frames": len(run["mapper"].timings.samples["frame"]), "rows": rows,
+            "h3edge_components": comps, "h3edge_stats": run["stats"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--datasets", nargs="+", default=["sim", "replica"], choices=["sim", "replica"])
+    ap.add_argument("--profile", default="x86-cpu")
+    ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
+    ap.add_argument("--replica-stride", type=int, default=5)
+    ap.add_argument("--tsdf-voxel", type=float, default=0.01)
+    ap.add_argument("--work", default="out/bench_mapping", help="cache and run directories")
+    ap.add_argument("--out", default="docs/bench_mapping", help="writes OUT.md and OUT.json")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from h3edge.sim.make import PRESETS, ensure_scene
+
+    profile = load_profile(args.profile)
+    work = Path(args.work)
+    results, tables = [], []
+    for ds in args.datasets:
+        if ds == "sim":
+            seq = ReplicaSequence(ensure_scene(work / "scene_default", PRESETS["default"]))
+            title = "default simulated scene (640x480)"
+        else:
+            if not REPLICA.is_dir():
+                log.warning("replica skipped: %s not present", REPLICA)
+                continue
+            seq = ReplicaSequence(render_replica(REPLICA, work / "replica_office0", args.replica_stride))
+            title = f"Replica office0 GT mesh along every {args.replica_stride}th real pose (1200x680)"
+        r = bench_dataset(ds, seq, profile, work, args.frames, args.tsdf_voxel)
+        r["title"] = title
+        results.append(r)
+        tables.append(format_rows(title, r["rows"]))
+        print(tables[-1], flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=1, default=str) + "\n")
+    out.with_suffix(".md").write_text("\n\n".join(tables) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,155 @@
+"""Render colour + depth from the map at any pose and intrinsics (novel views, queries, evaluation).
+
+Two stages per ray, both restricted to allocated leaf voxels:
+1. coarse: march the ray through the voxel grid at ``coarse_step`` evaluating only the octree
+   SDF priors (trilinear, cheap), and take the first + to - crossing (linear interpolation); a
+   fused numba kernel over a dense voxel-id grid of the map's bounding box, parallel over rays;
+2. fine: ``fine_samples`` samples ``fine_step`` apart centred on that crossing, full SDF (prior
+   + residual) and the paper's volume rendering weights sigma(s/beta) sigma(-s/beta) give the
+   depth; colour is the colour field at the rendered surface point. With the paper's kernel
+   (2.5 mm wide) the weights sit on the zero crossing, so one colour evaluation per ray stands
+   in for the weighted sum at a ninth of the cost.
+Rays with no crossing or no weight render as depth 0, colour black.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from h3edge.geometry.camera import Intrinsics, pixel_rays_world
+from h3edge.mapping.rendering import composite
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    near: float = 0.05  # m (z-depth)
+    far: float = 10.0  # m, the sensor's max depth (authors: 10 m)
+    coarse_step: float = 0.02  # m, prior march step along z
+    fine_samples: int = 9
+    fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
+    chunk: int = 65536  # rays per fine-stage batch
+    max_pixels: int = 1920 * 1080  # larger requests are refused
+
+
+_KERNEL = None
+
+
+def _march_kernel():
+    global _KERNEL  # compiled once per process: a cache of a pure function, not state
+    if _KERNEL is not None:
+        return _KERNEL
+    import numba as nb
+
+    @nb.njit(parallel=True, fastmath=False, cache=False)
+    def march(o, dirs, near, far, step, grid, g0, vs, vv, priors, out):
+        nx, ny, nz = grid.shape
+        lo = (g0[0] * vs, g0[1] * vs, g0[2] * vs)
+        hi = ((g0[0] + nx) * vs, (g0[1] + ny) * vs, (g0[2] + nz) * vs)
+        for r in nb.prange(dirs.shape[0]):
+            out[r] = -1.0
+            t0, t1 = near, far
+            for a in range(3):
+                d = dirs[r, a]
+                if abs(d) < 1e-12:
+                    if o[a] < lo[a] or o[a] > hi[a]:
+                        t0, t1 = 1.0, 0.0
+                    continue
+                ta, tb = (lo[a] - o[a]) / d, (hi[a] - o[a]) / d
+                if ta > tb:
+                    ta, tb = tb, ta
+                t0, t1 = max(t0, ta), min(t1, tb)
+            if t0 >= t1:
+                continue
+            prev = math.nan
+            prev_t = 0.0
+            t = t0
+            while t <= t1:
+                px = (o[0] + dirs[r, 0] * t) / vs
+                py = (o[1] + dirs[r, 1] * t) / vs
+                pz = (o[2] + dirs[r, 2] * t) / vs
+                fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+                ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
+                vid = -1
+                if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
+                    vid = grid[ix, iy, iz]
+                if vid < 0:
+                    prev = math.nan
+                    t += step
+                    continue
+                ux, uy, uz = px - fx, py - fy, pz - fz
+                s = 0.0
+                for c in range(8):
+                    w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * \
+                        (uz if (c >> 2) & 1 else 1.0 - uz)
+                    s += w * priors[vv[vid, c]]
+                if prev > 0.0 and s <= 0.0:
+                    out[r] = prev_t + (t - prev_t) * prev / (prev - s)
+                    break
+                prev, prev_t = s, t
+                t += step
+        return out
+
+    _KERNEL = march
+    return march
+
+
+def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig) -> np.ndarray:
+    """Ray parameter (= z-depth for camera-z-normalised ``dirs``) of each ray's first + to -
+    crossing of the prior SDF inside allocated voxels; -1 where there is none."""
+    g0, grid = voxels.dense_index()
+    out = np.empty(len(dirs), np.float64)
+    if len(voxels) == 0:
+        out[:] = -1
+        return out
+    priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
+    return _march_kernel()(np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), cfg.near,
+                           cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
+                           voxels.voxel_vertices, priors, out)
+
+
+@torch.no_grad()
+def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: float, cfg: RenderConfig
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``."""
+    dev = next(field_.parameters()).device
+    n = len(dirs)
+    t_hit = prior_crossings(origin, dirs, voxels, cfg)
+    depth = np.zeros(n, np.float32)
+    color = np.zeros((n, 3), np.float32)
+    rays = np.flatnonzero(t_hit > 0)
+    offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
+    o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
+    for s in range(0, len(rays), cfg.chunk):
+        idx = rays[s:s + cfg.chunk]
+        d = torch.from_numpy(dirs[idx].astype(np.float32)).to(dev)
+        t = torch.from_numpy(t_hit[idx].astype(np.float32)).to(dev)[:, None] + cfg.fine_step * offs[None]
+        pts = o + d[:, None, :] * t[..., None]
+        sdf, inside = field_.sdf(pts.reshape(-1, 3), voxels)
+        out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape))
+        hit = out.hit
+        surf = o + d[hit] * out.depth[hit, None]
+        col = field_.color(surf, voxels.voxel_ids(surf)) if len(surf) else surf
+        hit_np = hit.cpu().numpy()
+        depth[idx[hit_np]] = out.depth[hit].cpu().numpy()
+        color[idx[hit_np]] = col.float().cpu().numpy()
+    return color, depth
+
+
+class MapRenderer:
+    """:class:`~h3edge.eval.evaluate.ViewRenderer` over a field and its voxel map."""
+
+    def __init__(self, field_, voxels, beta: float, cfg: RenderConfig = RenderConfig()):
+        self.field, self.voxels, self.beta, self.cfg = field_, voxels, beta, cfg
+
+    def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Colour uint8 (H, W, 3) and z-depth float32 (H, W) metres, 0 where nothing is mapped."""
+        if intr.width * intr.height > self.cfg.max_pixels:
+            raise ValueError(f"render of {intr.width}x{intr.height} exceeds the cap of {self.cfg.max_pixels} pixels")
+        o, d = pixel_rays_world(intr, np.asarray(c2w, np.float64))
+        color, depth = render_rays(self.field, self.voxels, o, d.reshape(-1, 3), self.beta, self.cfg)
+        rgb = np.clip(color * 255 + 0.5, 0, 255).astype(np.uint8).reshape(intr.height, intr.width, 3)
+        return rgb, depth.reshape(intr.height, intr.width)

@@ -1,0 +1,131 @@
+"""The incremental mapper end to end on the tiny simulated scene, its drop rules and the renderer."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from h3edge.eval.metrics import psnr
+from h3edge.geometry.camera import Intrinsics, look_at, pixel_rays_world
+from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.field import Field, FieldConfig
+from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
+
+LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=1024, mesh_resolution=2),
+                   voxels=VoxelConfig(min_points=3), field=FieldConfig(sdf_layers=2, geo_log2_table=16,
+                                                                      tex_log2_table=16))
+
+
+@pytest.fixture(scope="module")
+def mapped(tiny_scene):
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(LEAN)
+    results = [m.process(f) for f in seq]
+    return seq, m, results
+
+
+def test_maps_tiny_scene(mapped):
+    seq, m, results = mapped
+    assert all(r.mapped for r in results)
+    assert results[0].keyframe and results[0].new_voxels > 0
+    # a keyframe at least every max_interval frames
+    kf = [i for i, r in enumerate(results) if r.keyframe]
+    assert np.diff(kf).max() <= m.settings.keyframes.max_interval
+    held = seq.heldout[0]
+    rgb, depth = m.render(held.intrinsics, held.pose)
+    valid = (held.depth > 0) & (depth > 0)
+    assert valid.mean() > 0.9
+    assert np.median(np.abs(depth[valid] - held.depth[valid])) < 0.02  # metres
+    assert psnr(rgb, held.color) > 15.0
+    summary = m.timings.summary()
+    assert {"read", "priors", "keyframes", "training", "frame", "render"} <= set(summary)
+    assert summary["training"]["count"] == len(seq)
+
+
+def test_mesh_is_near_the_surface(mapped, tiny_scene):
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    _, m, _ = mapped
+    mesh = m.mesh()
+    assert len(mesh.faces) > 1000
+    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
+    gt = trimesh.load(tiny_scene / "gt_mesh.ply", process=False)
+    d, _ = cKDTree(trimesh.sample.sample_surface(gt, 100_000, seed=0)[0]).query(mesh.vertices)
+    assert np.median(d) < 0.03
+
+
+def test_bad_frames_are_dropped_and_the_map_is_untouched(mapped, tiny_scene):
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(LEAN)
+    m.process(seq[0])
+    m.process(seq[1])
+    state = (len(m.voxels), m.voxels.priors.detach().clone(), m.field.geo_grid.table.detach().clone())
+    f = seq[2]
+    bad = {
+        "duplicate": dataclasses.replace(f, timestamp=seq[1].timestamp),
+        "out of order": dataclasses.replace(f, timestamp=seq[0].timestamp),
+        "non-rigid": dataclasses.replace(f, pose=f.pose * np.array([[1.1], [1], [1], [1]])),
+        "nan pose": dataclasses.replace(f, pose=np.full((4, 4), np.nan)),
+        "wrong size": dataclasses.replace(f, depth=f.depth[:-1]),
+        "no depth": dataclasses.replace(f, depth=np.zeros_like(f.depth)),
+        "all nan depth": dataclasses.replace(f, depth=np.full_like(f.depth, np.nan)),
+        "grey colour": dataclasses.replace(f, color=f.color[..., 0]),
+    }
+    for name, frame in bad.items():
+        r = m.process(frame)
+        assert not r.mapped and r.reason, name
+    assert sum(m.dropped.values()) == len(bad)
+    assert len(m.voxels) == state[0]
+    assert torch.equal(m.voxels.priors.detach(), state[1])
+    assert torch.equal(m.field.geo_grid.table.detach(), state[2])
+    # partly NaN / negative depth is cleaned, not dropped
+    d = f.depth.copy()
+    d[::2] = np.nan
+    d[1::4] = -1
+    assert m.process(dataclasses.replace(f, depth=d)).mapped
+
+
+def test_render_finds_an_analytic_plane():
+    """Priors set to a plane's SDF and a zero residual: the renderer puts the surface on the plane."""
+    intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
+    c2w = look_at(np.array([0.03, 0.02, 1.5]), np.array([0.03, 0.02, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    o, d = pixel_rays_world(intr, c2w)
+    t = (0.0 - o[2]) / d[..., 2]  # plane z = 0: ray hits at t (= z-depth)
+    depth = t.astype(np.float32)
+    vm = VoxelMap(VoxelConfig(min_points=1))
+    vm.allocate(depth, intr, c2w)
+    z = unpack(vm.vertex_keys)[:, 2]  # vertex z index
+    vm.priors.data[:] = torch.from_numpy((z * vm.cfg.voxel_size / vm.cfg.truncation).astype(np.float32))
+    fld = Field(FieldConfig(geo_log2_table=12, tex_log2_table=12), np.array([[-2.0] * 3, [2.0] * 3]), 0.1)
+    with torch.no_grad():
+        fld.sdf_mlp[-1].weight.zero_()
+        fld.sdf_mlp[-1].bias.zero_()
+    rgb, out = MapRenderer(fld, vm, beta=0.05).render(intr, c2w)
+    hit = out > 0
+    assert hit.mean() > 0.95
+    assert np.abs(out[hit] - depth[hit]).max() < 0.003
+    with pytest.raises(ValueError, match="exceeds the cap"):
+        MapRenderer(fld, vm, 0.05, RenderConfig(max_pixels=100)).render(intr, c2w)
+
+
+def test_prior_adam_keeps_state_across_growth():
+    vm = VoxelMap(VoxelConfig(min_points=1))
+    intr = Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0)
+    vm.allocate(np.full((6, 8), 1.0, np.float32), intr, np.eye(4))
+    opt = PriorAdam(lr=0.1)
+    (vm.priors * torch.arange(len(vm.priors))).sum().backward()
+    opt.step(vm)
+    m_before = opt.m.clone()
+    n = len(vm.priors)
+    vm.allocate(np.full((6, 8), 2.0, np.float32), intr, np.eye(4))
+    assert len(vm.priors) > n
+    (vm.priors[:1] * 1.0).sum().backward()
+    opt.step(vm)
+    assert len(opt.m) == len(vm.priors)
+    assert torch.allclose(opt.m[1:n], m_before[1:n])  # untouched rows keep their moments
