@@ -39,6 +39,42 @@ def test_malformed_dataset_gives_one_line_error(tmp_path):
     assert len(p.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["sim", "make", "--help"], ["eval", "--help"], ["demo", "--help"]])
+LEAN_PROFILE = """
+[mapper]
+device = "cpu"
+rays_per_iteration = 512
+mesh_resolution = 2
+[voxels]
+min_points = 3
+[field]
+sdf_layers = 1
+geo_log2_table = 15
+tex_log2_table = 15
+[eval]
+n_points = 20000
+max_views = 2
+cull_views = 10
+"""
+
+
+def test_map_writes_a_run_directory(tmp_path, tiny_scene):
+    prof = tmp_path / "lean.toml"
+    prof.write_text(LEAN_PROFILE)
+    out = tmp_path / "run"
+    p = run("map", str(tiny_scene), "--profile", str(prof), "--out", str(out), "--frames", "12")
+    assert "map training" in p.stdout and "Accuracy [cm]" in p.stdout and "12 frames mapped" in p.stdout
+    for name in ("mesh.ply", "metrics.json", "timings.json", "timings.md", "run.json", "renders/gt_vs_render.jpg"):
+        assert (out / name).is_file(), name
+    t = json.loads((out / "timings.json").read_text())
+    assert t["frames"] == 12 and t["components"]["training"]["count"] == 12
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["geometry"]["completion_ratio"] > 0.5
+    prof.write_text("[mapper]\nrays = 3\n")
+    p = run("map", str(tiny_scene), "--profile", str(prof), "--out", str(out), check=False)
+    assert p.returncode == 2 and "unknown key 'rays'" in p.stderr
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["sim", "make", "--help"], ["eval", "--help"], ["demo", "--help"],
+                                  ["map", "--help"]])
 def test_help(argv):
     assert run(*argv).returncode == 0

@@ -81,11 +81,12 @@ class Field(nn.Module):
     def hash_grids(self) -> list[HashGrid]:
         return [self.geo_grid, self.texture.grid]
 
-    def sdf(self, points: torch.Tensor, voxels: VoxelMap, located: tuple[np.ndarray, np.ndarray] | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor]:
+    def sdf(self, points: torch.Tensor, voxels: VoxelMap, located: tuple[np.ndarray, np.ndarray] | None = None,
+            prior: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """SDF (truncation units) = trilinear prior + residual, and the in-voxel mask. Points outside
-        the allocated voxels get 0 and must be masked by the caller (the residual is not evaluated)."""
-        prior, inside = voxels.coarse_sdf(points, located)
+        the allocated voxels get 0 and must be masked by the caller (the residual is not evaluated).
+        ``located`` / ``prior``: the voxel lookup or the (prior SDF, inside) pair, when already known."""
+        prior, inside = voxels.coarse_sdf(points, located) if prior is None else prior
         idx = torch.nonzero(inside).squeeze(1)
         if len(idx) == len(points):
             return prior + self.sdf_mlp(self.geo_grid(points))[:, 0], inside

@@ -93,8 +93,30 @@ def _march_kernel():
                 t += step
         return out
 
-    _KERNEL = march
-    return march
+    @nb.njit(parallel=True)
+    def prior_at(pts, grid, g0, vs, vv, priors, sdf, vox):
+        nx, ny, nz = grid.shape
+        for i in nb.prange(pts.shape[0]):
+            px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
+            fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+            ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
+            vid = -1
+            if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
+                vid = grid[ix, iy, iz]
+            vox[i] = vid
+            sdf[i] = 0.0
+            if vid < 0:
+                continue
+            ux, uy, uz = px - fx, py - fy, pz - fz
+            s = 0.0
+            for c in range(8):
+                w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * \
+                    (uz if (c >> 2) & 1 else 1.0 - uz)
+                s += w * priors[vv[vid, c]]
+            sdf[i] = s
+
+    _KERNEL = (march, prior_at)
+    return _KERNEL
 
 
 def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig) -> np.ndarray:
@@ -106,9 +128,31 @@ def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderCon
         out[:] = -1
         return out
     priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
-    return _march_kernel()(np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), cfg.near,
-                           cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
-                           voxels.voxel_vertices, priors, out)
+    return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), cfg.near,
+                              cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
+                              voxels.voxel_vertices, priors, out)
+
+
+class PriorLookup:
+    """No-grad prior SDF and voxel ids at points through a dense voxel-id grid (constant time per
+    point; the searchsorted lookup of :meth:`VoxelMap.locate` is what training uses)."""
+
+    def __init__(self, voxels):
+        self.g0, self.grid = voxels.dense_index()
+        self.g0 = self.g0.astype(np.int64)
+        self.vs = voxels.cfg.voxel_size
+        self.vv = voxels.voxel_vertices
+        self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
+
+    def __call__(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sdf = np.empty(len(pts), np.float64)
+        vox = np.empty(len(pts), np.int64)
+        if len(self.vv):
+            _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.grid, self.g0, self.vs, self.vv,
+                               self.priors, sdf, vox)
+        else:
+            sdf[:], vox[:] = 0, -1
+        return sdf, vox
 
 
 @torch.no_grad()
@@ -121,18 +165,21 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
     rays = np.flatnonzero(t_hit > 0)
+    lookup = PriorLookup(voxels)
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
     o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
     for s in range(0, len(rays), cfg.chunk):
         idx = rays[s:s + cfg.chunk]
         d = torch.from_numpy(dirs[idx].astype(np.float32)).to(dev)
         t = torch.from_numpy(t_hit[idx].astype(np.float32)).to(dev)[:, None] + cfg.fine_step * offs[None]
-        pts = o + d[:, None, :] * t[..., None]
-        sdf, inside = field_.sdf(pts.reshape(-1, 3), voxels)
+        pts = (o + d[:, None, :] * t[..., None]).reshape(-1, 3)
+        prior, vox = lookup(pts.cpu().numpy())
+        sdf, inside = field_.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
+                                                     torch.from_numpy(vox >= 0).to(dev)))
         out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape))
         hit = out.hit
         surf = o + d[hit] * out.depth[hit, None]
-        col = field_.color(surf, voxels.voxel_ids(surf)) if len(surf) else surf
+        col = field_.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
         hit_np = hit.cpu().numpy()
         depth[idx[hit_np]] = out.depth[hit].cpu().numpy()
         color[idx[hit_np]] = col.float().cpu().numpy()
