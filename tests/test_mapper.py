@@ -81,6 +81,7 @@ def test_bad_frames_are_dropped_and_the_map_is_untouched(mapped, tiny_scene):
         r = m.process(frame)
         assert not r.mapped and r.reason, name
     assert sum(m.dropped.values()) == len(bad)
+    assert m.dropped == {"stale_timestamp": 2, "bad_pose": 2, "bad_depth": 1, "no_depth": 2, "bad_colour": 1}
     assert len(m.voxels) == state[0]
     assert torch.equal(m.voxels.priors.detach(), state[1])
     assert torch.equal(m.field.geo_grid.table.detach(), state[2])

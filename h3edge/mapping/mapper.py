@@ -132,35 +132,34 @@ class Mapper:
         return self._rays_cache[intr]
 
     # ------------------------------------------------------------- validation
-    def check_frame(self, frame: Frame) -> str:
-        """Why ``frame`` cannot be mapped ('' when it can)."""
+    def check_frame(self, frame: Frame) -> tuple[str, str]:
+        """(drop code, message) saying why ``frame`` cannot be mapped; ('', '') when it can."""
         intr = frame.intrinsics
         h, w = intr.height, intr.width
         if not isinstance(frame.color, np.ndarray) or frame.color.shape != (h, w, 3) or frame.color.dtype != np.uint8:
-            return f"colour must be uint8 ({h}, {w}, 3), got {getattr(frame.color, 'shape', None)}"
+            return "bad_colour", f"colour must be uint8 ({h}, {w}, 3), got {getattr(frame.color, 'shape', None)}"
         if not isinstance(frame.depth, np.ndarray) or frame.depth.shape != (h, w):
-            return f"depth must be ({h}, {w}), got {getattr(frame.depth, 'shape', None)}"
+            return "bad_depth", f"depth must be ({h}, {w}), got {getattr(frame.depth, 'shape', None)}"
         pose = np.asarray(frame.pose, np.float64)
         if pose.shape != (4, 4):
-            return f"pose must be 4x4, got {pose.shape}"
+            return "bad_pose", f"pose must be 4x4, got {pose.shape}"
         err = rigid_error(pose)
         if err:
-            return f"pose: {err}"
+            return "bad_pose", f"pose: {err}"
         if not np.isfinite(frame.timestamp):
-            return "timestamp is not finite"
+            return "bad_timestamp", "timestamp is not finite"
         if self.last_timestamp is not None and frame.timestamp <= self.last_timestamp:
-            return (f"timestamp {frame.timestamp:.6f} not after the last mapped {self.last_timestamp:.6f} "
-                    "(out of order or duplicate)")
-        return ""
+            return "stale_timestamp", (f"timestamp {frame.timestamp:.6f} not after the last mapped "
+                                       f"{self.last_timestamp:.6f} (out of order or duplicate)")
+        return "", ""
 
     def clean_depth(self, depth: np.ndarray) -> np.ndarray:
         d = np.asarray(depth, np.float32)
         ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
         return np.where(ok, d, np.float32(0))
 
-    def _drop(self, frame: Frame, reason: str) -> FrameResult:
-        key = reason.split(":")[0].split(" (")[0][:40]
-        self.dropped[key] = self.dropped.get(key, 0) + 1
+    def _drop(self, frame: Frame, code: str, reason: str) -> FrameResult:
+        self.dropped[code] = self.dropped.get(code, 0) + 1
         log.warning("frame %d dropped: %s", frame.index, reason)
         return FrameResult(frame.index, False, reason)
 
@@ -169,9 +168,9 @@ class Mapper:
         """Map one frame. ``read_seconds``: the caller's reading / decoding time, added to ``read``."""
         t_frame = time.perf_counter()
         t0 = time.perf_counter()
-        reason = self.check_frame(frame)
-        if reason:
-            return self._drop(frame, reason)
+        code, reason = self.check_frame(frame)
+        if code:
+            return self._drop(frame, code, reason)
         depth = self.clean_depth(frame.depth)
         pose = np.asarray(frame.pose, np.float64)
         if self.field is None:
@@ -185,7 +184,7 @@ class Mapper:
             depth = np.where(outside, np.float32(0), depth)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         if len(valid) < self.cfg.min_valid_fraction * depth.size:
-            return self._drop(frame, f"too little valid depth ({len(valid)} of {depth.size} pixels)")
+            return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
         stored = StoredFrame(frame.color, depth, pose, frame.intrinsics, valid)
         self.timings.add("read", time.perf_counter() - t0 + read_seconds)
 
