@@ -10,7 +10,7 @@ Datasets:
 Peer: Open3D's ``VoxelBlockGrid`` TSDF fusion (CPU) when ``open3d`` imports, at ``--tsdf-voxel``
 (1 cm) with a 4-voxel truncation; its mesh is rendered with vertex colours for PSNR / SSIM / Depth L1.
 Both run in this process on the same frames; per-frame time is the median of the per-frame
-integration (TSDF) or mapping (h3edge) time, frame reading excluded. Output: a markdown table
+integration time (TSDF) or whole-frame time including reading and decoding (h3edge). Output: a markdown table
 and JSON.
 
     python -m h3edge.bench.mapping [--datasets sim replica] [--profile x86-cpu] [--out docs/bench_mapping]
