@@ -16,13 +16,7 @@ from dataclasses import field as dc_field
 from pathlib import Path
 
 from h3edge.eval.evaluate import EvalConfig
-from h3edge.mapping.field import FieldConfig
-from h3edge.mapping.keyframes import KeyframeConfig
-from h3edge.mapping.losses import LossWeights
-from h3edge.mapping.mapper import MapperConfig, MapSettings
-from h3edge.mapping.render import RenderConfig
-from h3edge.mapping.trainer import TrainConfig
-from h3edge.mapping.voxels import VoxelConfig
+from h3edge.mapping.mapper import MapSettings
 
 PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
 
@@ -32,20 +26,15 @@ class ProfileError(ValueError):
 
 
 @dataclass(frozen=True)
-class Profile:
+class Profile(MapSettings):
+    """A device profile: the mapper's settings (one TOML table per :class:`MapSettings` section),
+    plus evaluation settings."""
+
     name: str = "default"
-    mapper: MapperConfig = dc_field(default_factory=MapperConfig)
-    voxels: VoxelConfig = dc_field(default_factory=VoxelConfig)
-    field: FieldConfig = dc_field(default_factory=FieldConfig)
-    train: TrainConfig = dc_field(default_factory=TrainConfig)
-    losses: LossWeights = dc_field(default_factory=LossWeights)
-    keyframes: KeyframeConfig = dc_field(default_factory=KeyframeConfig)
-    render: RenderConfig = dc_field(default_factory=RenderConfig)
     eval: EvalConfig = dc_field(default_factory=EvalConfig)
 
     def map_settings(self) -> MapSettings:
-        return MapSettings(self.mapper, self.voxels, self.field, self.train, self.losses, self.keyframes,
-                           self.render)
+        return MapSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(MapSettings)})
 
 
 def _coerce(value, tp, where: str):

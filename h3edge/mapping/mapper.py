@@ -182,6 +182,7 @@ class Mapper:
         if outside.any():
             self.out_of_bound_points += int(outside.sum())
             depth = np.where(outside, np.float32(0), depth)
+            pts[outside] = np.nan
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         if len(valid) < self.cfg.min_valid_fraction * depth.size:
             return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
@@ -189,7 +190,7 @@ class Mapper:
         self.timings.add("read", time.perf_counter() - t0 + read_seconds)
 
         with self.timings.time("priors"):
-            new = self.voxels.allocate(depth, frame.intrinsics, pose)
+            new = self.voxels.allocate(depth, frame.intrinsics, pose, points=pts)
 
         with self.timings.time("keyframes"):
             sub = pts.reshape(-1, 3)[valid[:: self.cfg.observe_stride]]

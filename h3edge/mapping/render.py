@@ -44,6 +44,24 @@ def _march_kernel():
         return _KERNEL
     import numba as nb
 
+    @nb.njit(inline="always")
+    def trilinear(px, py, pz, grid, g0, vv, priors):
+        """(voxel id or -1, trilinear prior) at a point in voxel units, through the dense id grid."""
+        nx, ny, nz = grid.shape
+        fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+        ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
+        if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+            return -1, 0.0
+        vid = grid[ix, iy, iz]
+        if vid < 0:
+            return -1, 0.0
+        ux, uy, uz = px - fx, py - fy, pz - fz
+        s = 0.0
+        for c in range(8):
+            w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * (uz if (c >> 2) & 1 else 1.0 - uz)
+            s += w * priors[vv[vid, c]]
+        return vid, s
+
     @nb.njit(parallel=True, fastmath=False, cache=False)
     def march(o, dirs, near, far, step, grid, g0, vs, vv, priors, out):
         nx, ny, nz = grid.shape
@@ -68,24 +86,12 @@ def _march_kernel():
             prev_t = 0.0
             t = t0
             while t <= t1:
-                px = (o[0] + dirs[r, 0] * t) / vs
-                py = (o[1] + dirs[r, 1] * t) / vs
-                pz = (o[2] + dirs[r, 2] * t) / vs
-                fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
-                ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
-                vid = -1
-                if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
-                    vid = grid[ix, iy, iz]
+                vid, s = trilinear((o[0] + dirs[r, 0] * t) / vs, (o[1] + dirs[r, 1] * t) / vs,
+                                   (o[2] + dirs[r, 2] * t) / vs, grid, g0, vv, priors)
                 if vid < 0:
                     prev = math.nan
                     t += step
                     continue
-                ux, uy, uz = px - fx, py - fy, pz - fz
-                s = 0.0
-                for c in range(8):
-                    w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * \
-                        (uz if (c >> 2) & 1 else 1.0 - uz)
-                    s += w * priors[vv[vid, c]]
                 if prev > 0.0 and s <= 0.0:
                     out[r] = prev_t + (t - prev_t) * prev / (prev - s)
                     break
@@ -95,25 +101,8 @@ def _march_kernel():
 
     @nb.njit(parallel=True)
     def prior_at(pts, grid, g0, vs, vv, priors, sdf, vox):
-        nx, ny, nz = grid.shape
         for i in nb.prange(pts.shape[0]):
-            px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
-            fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
-            ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
-            vid = -1
-            if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
-                vid = grid[ix, iy, iz]
-            vox[i] = vid
-            sdf[i] = 0.0
-            if vid < 0:
-                continue
-            ux, uy, uz = px - fx, py - fy, pz - fz
-            s = 0.0
-            for c in range(8):
-                w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * \
-                    (uz if (c >> 2) & 1 else 1.0 - uz)
-                s += w * priors[vv[vid, c]]
-            sdf[i] = s
+            vox[i], sdf[i] = trilinear(pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs, grid, g0, vv, priors)
 
     _KERNEL = (march, prior_at)
     return _KERNEL

@@ -122,9 +122,11 @@ class VoxelMap:
     def voxel_coords(self, points: np.ndarray) -> np.ndarray:
         return np.floor(points / self.cfg.voxel_size).astype(np.int64)
 
-    def allocate(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:
-        """Allocate voxels seen by a frame; returns the keys of the newly created voxels."""
-        pts = backproject(depth, intr, c2w).reshape(-1, 3)
+    def allocate(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, points: np.ndarray | None = None
+                 ) -> np.ndarray:
+        """Allocate voxels seen by a frame; returns the keys of the newly created voxels.
+        ``points``: the frame's world back-projection (H, W, 3), when the caller already has it."""
+        pts = (backproject(depth, intr, c2w) if points is None else points).reshape(-1, 3)
         pts = pts[np.isfinite(pts).all(1)]
         if len(pts) == 0:
             return np.zeros(0, np.int64)
