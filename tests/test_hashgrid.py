@@ -6,25 +6,26 @@ import numpy as np
 import pytest
 import torch
 
-from h3edge.mapping.hashgrid import PRIMES, HashGrid, HashGridSpec
+from h3edge.mapping.hashgrid import PRIMES, HashFunction, HashGrid, HashGridSpec
 
 BOUND = np.array([[-1.0, -2.0, 0.0], [3.0, 2.0, 1.5]])
 SPEC = HashGridSpec(levels=4, features=2, log2_table=12, base_resolution=6, per_level_scale=2.0)  # dense + hashed levels
 BACKENDS = ["torch", "numba"]
 
 
-def reference_encode(grid: HashGrid, x: np.ndarray) -> np.ndarray:
-    """Point-by-point loops over the instant-NGP definition."""
+def reference_encode(grid: HashGrid, x: np.ndarray, fn: HashFunction | None = None, normalised=False) -> np.ndarray:
+    """Point-by-point loops over the instant-NGP definition (``fn``: primes, offsets, dense)."""
     spec, T = grid.spec, grid.spec.table_size
+    P, D = (PRIMES, (0, 0, 0)) if fn is None else (fn.primes, fn.offsets)
     table = grid.table.detach().numpy()
     lo, size = BOUND[0], BOUND[1] - BOUND[0]
     out = np.zeros((len(x), spec.out_dim))
     for i, p in enumerate(x):
-        xn = np.clip((p - lo) / size, 0, 1)
+        xn = p if normalised else np.clip((p - lo) / size, 0, 1)
         for l in range(spec.levels):
             scale = spec.base_resolution * spec.per_level_scale ** l - 1
             side = math.ceil(scale) + 2
-            dense = side ** 3 <= T
+            dense = side ** 3 <= T and (fn is None or fn.dense)
             pos = xn * scale + 0.5
             g = np.floor(pos).astype(int)
             f = pos - g
@@ -35,7 +36,7 @@ def reference_encode(grid: HashGrid, x: np.ndarray) -> np.ndarray:
                 if dense:
                     h = v[0] + side * (v[1] + side * v[2])
                 else:
-                    h = (v[0] * PRIMES[0]) ^ (v[1] * PRIMES[1]) ^ (v[2] * PRIMES[2])
+                    h = (int(v[0]) * P[0] + D[0]) ^ (int(v[1]) * P[1] + D[1]) ^ (int(v[2]) * P[2] + D[2])
                 out[i, l * 2:(l + 1) * 2] += w * table[l * T + (h % T)]
     return out
 
@@ -60,6 +61,23 @@ def test_matches_reference(backend, points):
     grid = make_grid(backend)
     out = grid(torch.tensor(points, dtype=torch.float32)).detach().numpy()
     assert np.allclose(out, reference_encode(grid, points), atol=1e-5)
+
+
+WARP_FN = HashFunction((1, 2741578211, 1179736007), (15485863, 32452843, 49979687), dense=False)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_second_hash_function_matches_reference(backend):
+    """A table read through a second hash function (primes + offsets, always hashed) at normalised
+    coordinates outside [0, 1] (warped spaces)."""
+    grid = HashGrid(SPEC, BOUND, hash_functions=(HashFunction(), WARP_FN), backend=backend, init_scale=0.5, seed=3)
+    xn = np.random.default_rng(5).uniform(-0.5, 2.0, (100, 3))
+    out = grid(torch.tensor(xn, dtype=torch.float32), fn=1, normalised=True).detach().numpy()
+    assert np.allclose(out, reference_encode(grid, xn, WARP_FN, normalised=True), atol=1e-5)
+    x = torch.tensor(xn, dtype=torch.float32)
+    (grid(x, fn=1, normalised=True).sum() + grid(x, fn=0, normalised=True).sum()).backward()
+    rows, g = grid.take_sparse_grad()
+    assert len(torch.unique(rows)) == len(rows)  # two calls, one set of rows
 
 
 def test_backends_agree_forward_and_backward(points):
@@ -133,3 +151,19 @@ def test_sparse_adam_backends_agree(points):
             grid.sparse_adam_step(lr=1e-2)
         tables[b] = grid.table.detach()
     assert torch.allclose(tables["torch"], tables["numba"], atol=1e-6)
+
+
+def test_backends_agree_over_several_hash_functions(points):
+    """Gradients of several calls through different hash functions sum per row on both backends."""
+    x = torch.tensor(points, dtype=torch.float32)
+    res = {}
+    for b in BACKENDS:
+        grid = HashGrid(SPEC, BOUND, hash_functions=(HashFunction(), WARP_FN), backend=b, init_scale=0.5, seed=3)
+        wts = torch.arange(SPEC.out_dim, dtype=torch.float32)
+        y = grid(x) * 2 + grid(grid.normalise(x) * 0.3, fn=1, normalised=True)
+        ((y * wts).sum() + (grid(x[:50]) * wts).sum()).backward()
+        rows, g = grid.take_sparse_grad()
+        order = torch.argsort(rows)
+        res[b] = (rows[order], g[order])
+    assert torch.equal(res["torch"][0], res["numba"][0])
+    assert torch.allclose(res["torch"][1], res["numba"][1], atol=1e-4)

@@ -43,8 +43,27 @@ def test_maps_tiny_scene(mapped):
     assert np.median(np.abs(depth[valid] - held.depth[valid])) < 0.02  # metres
     assert psnr(rgb, held.color) > 15.0
     summary = m.timings.summary()
-    assert {"read", "priors", "keyframes", "training", "frame", "render"} <= set(summary)
+    assert {"read", "priors", "texture", "keyframes", "training", "frame", "render"} <= set(summary)
     assert summary["training"]["count"] == len(seq)
+    # H3: texture patterns every update_interval frames, quasi-heterogeneous features, gradient scores
+    assert summary["texture"]["count"] == -(-len(seq) // m.settings.texture.update_interval)
+    assert m.field.texture.out_dim == 4 * 4 * 2 and len(m.field.texture.weak) > 0
+    assert sum(m.stats()["texture_classes"].values()) == len(m.voxels)
+    assert any(k.scores.max() > 1 for k in m.keyframes.keyframes)
+
+
+def test_uniform_texture_variant(tiny_scene):
+    """H2-Mapping's uniform grid and voxel-count keyframe score behind the same mapper."""
+    from h3edge.mapping.texture_patterns import TextureConfig
+    from h3edge.mapping.keyframes import KeyframeConfig
+
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(dataclasses.replace(LEAN, texture=TextureConfig(quasi_heterogeneous=False),
+                                   keyframes=KeyframeConfig(gradient_aided=False)))
+    for f in list(seq)[:3]:
+        assert m.process(f).mapped
+    assert m.field.texture.out_dim == 4 * 2 and "texture" not in m.timings.summary()
+    assert all((k.scores == 1).all() for k in m.keyframes.keyframes)
 
 
 def test_mesh_is_near_the_surface(mapped, tiny_scene):

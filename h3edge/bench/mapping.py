@@ -179,9 +179,20 @@ def main(argv=None) -> int:
         print(tables[-1], flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(results, indent=1, default=str) + "\n")
-    out.with_suffix(".md").write_text("\n\n".join(tables) + "\n")
+    merged = _merge(out.with_suffix(".json"), results)
+    out.with_suffix(".json").write_text(json.dumps(merged, indent=1, default=str) + "\n")
+    out.with_suffix(".md").write_text("\n\n".join(format_rows(r["title"], r["rows"]) for r in merged) + "\n")
     return 0
+
+
+def _merge(path: Path, results: list[dict]) -> list[dict]:
+    """Results of this run replace same-dataset entries of an earlier run; other datasets are kept."""
+    try:
+        old = json.loads(path.read_text()) if path.is_file() else []
+    except ValueError:
+        old = []
+    fresh = {r["dataset"] for r in results}
+    return [r for r in old if r.get("dataset") not in fresh] + results
 
 
 if __name__ == "__main__":

@@ -1,10 +1,10 @@
 """The hierarchical hybrid field: SDF = octree prior + residual MLP(geometry hash features);
 colour = MLP(texture features).
 
-The texture features come from a :class:`TextureEncoder`. Here it is the uniform hash grid of
-H2-Mapping (:class:`UniformTexture`); issue 3/6 adds the quasi-heterogeneous encoder (space
-warps, one table with a hash function per warp, zero-padded concatenation) behind the same
-interface: ``out_dim`` and ``forward(points, voxel_index) -> (N, out_dim)``.
+The texture features come from a :class:`TextureEncoder` (``h3edge.mapping.texture_grid``):
+H3-Mapping's quasi-heterogeneous grids (space warps, one table with a hash function per warp,
+zero-padded concatenation) or, with ``[texture] quasi_heterogeneous = false``, H2-Mapping's uniform
+hash grid; both take ``forward(points, voxel_index) -> (N, out_dim)``.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import torch
 from torch import nn
 
 from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
+from h3edge.mapping.texture_grid import QuasiHeteroTexture, UniformTexture
+from h3edge.mapping.texture_patterns import TextureConfig
 from h3edge.mapping.voxels import VoxelMap
 
 
@@ -53,27 +55,19 @@ class TextureEncoder(Protocol):
     def __call__(self, points: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor: ...
 
 
-class UniformTexture(nn.Module):
-    """H2-Mapping's texture grid: one multiresolution hash grid, no warps."""
-
-    def __init__(self, grid: HashGrid):
-        super().__init__()
-        self.grid = grid
-        self.out_dim = grid.spec.out_dim
-
-    def forward(self, points: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor:  # noqa: ARG002
-        return self.grid(points)
-
-
 class Field(nn.Module):
-    def __init__(self, cfg: FieldConfig, bound: np.ndarray, voxel_size: float, device="cpu"):
+    def __init__(self, cfg: FieldConfig, bound: np.ndarray, voxel_size: float, device="cpu",
+                 texture: TextureConfig = TextureConfig()):
         super().__init__()
         self.cfg = cfg
         base = int(np.ceil((bound[1] - bound[0]).max() / voxel_size))  # one level-0 cell per leaf voxel
         geo = HashGridSpec(cfg.geo_levels, cfg.geo_features, cfg.geo_log2_table, base, cfg.geo_level_scale)
         tex = HashGridSpec(cfg.tex_levels, cfg.tex_features, cfg.tex_log2_table, base, cfg.tex_level_scale)
         self.geo_grid = HashGrid(geo, bound, backend=cfg.backend, seed=1, device=device)
-        self.texture: nn.Module = UniformTexture(HashGrid(tex, bound, backend=cfg.backend, seed=2, device=device))
+        if texture.quasi_heterogeneous:
+            self.texture: nn.Module = QuasiHeteroTexture(tex, bound, texture, cfg.backend, seed=2, device=device)
+        else:
+            self.texture = UniformTexture(HashGrid(tex, bound, backend=cfg.backend, seed=2, device=device))
         self.sdf_mlp = mlp(geo.out_dim, cfg.sdf_hidden, cfg.sdf_layers, 1).to(device)
         self.color_mlp = nn.Sequential(mlp(self.texture.out_dim, cfg.color_hidden, cfg.color_layers, 3),
                                        nn.Sigmoid()).to(device)

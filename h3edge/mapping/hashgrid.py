@@ -7,6 +7,11 @@ trilinearly interpolated. A level whose grid ((ceil(scale_l) + 2)^3 vertices) fi
 is indexed densely, otherwise by the spatial hash ``(v_x * pi_1) XOR (v_y * pi_2) XOR
 (v_z * pi_3) mod T`` (pi = 1, 2654435761, 805459861). Each level owns T rows of F features.
 
+One table can be read through several hash functions (H3-Mapping Sec. III-B: one per space-warp
+type): function i hashes ``XOR_k (v_k * pi_ik + delta_ik) mod T`` with its own primes and
+offsets. Function 0 is the plain instant-NGP hash (and keeps dense indexing for coarse levels);
+the others always hash, so that two functions never index the same dense rows by construction.
+
 Two interchangeable implementations give the same numbers:
 - ``torch``: plain PyTorch gathers, runs on CPU and CUDA;
 - ``numba``: fused CPU kernels (forward parallel over points; backward recomputes the corners,
@@ -54,12 +59,21 @@ class HashGridSpec:
         return np.array(out, np.int64)
 
 
-def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, primes=PRIMES) -> tuple[torch.Tensor, torch.Tensor]:
+@dataclass(frozen=True)
+class HashFunction:
+    primes: tuple[int, int, int] = PRIMES
+    offsets: tuple[int, int, int] = (0, 0, 0)
+    dense: bool = True  # coarse levels that fit the table are indexed densely
+
+
+def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction = HashFunction()
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """Row indices (N, L, 8) int64 into the (L*T, F) table and trilinear weights (N, L, 8)."""
     T = spec.table_size
     dev = xn.device
+    primes, d = fn.primes, fn.offsets
     scales = torch.tensor(spec.level_scales(), dtype=xn.dtype, device=dev)
-    dense = torch.tensor(spec.level_dense(), device=dev)
+    dense = torch.tensor(spec.level_dense() if fn.dense else np.zeros(spec.levels, np.int64), device=dev)
     p = xn[:, None, :] * scales[None, :, None] + 0.5  # (N, L, 3)
     g = torch.floor(p)
     f = p - g
@@ -69,7 +83,7 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, primes=PRIMES) ->
     w = torch.where(offs[None, None].bool(), f[:, :, None, :], 1 - f[:, :, None, :]).prod(-1)  # (N, L, 8)
     side = dense[None, :, None]
     dense_idx = v[..., 0] + side * (v[..., 1] + side * v[..., 2])
-    hashed = (v[..., 0] * primes[0]) ^ (v[..., 1] * primes[1]) ^ (v[..., 2] * primes[2])
+    hashed = (v[..., 0] * primes[0] + d[0]) ^ (v[..., 1] * primes[1] + d[1]) ^ (v[..., 2] * primes[2] + d[2])
     idx = torch.where(side > 0, dense_idx, hashed) & (T - 1)
     idx = idx + torch.arange(spec.levels, device=dev)[None, :, None] * T
     return idx, w
@@ -77,8 +91,8 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, primes=PRIMES) ->
 
 class _TorchEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, xn, table, grid):
-        idx, w = corner_indices_torch(xn, grid.spec, grid.primes)
+    def forward(ctx, xn, table, grid, fn):
+        idx, w = corner_indices_torch(xn, grid.spec, grid.hash_functions[fn])
         ctx.save_for_backward(idx, w)
         ctx.grid = grid
         feats = table[idx]  # (N, L, 8, F)
@@ -93,7 +107,7 @@ class _TorchEncode(torch.autograd.Function):
         rows, inv = torch.unique(idx.reshape(-1), return_inverse=True)
         g = torch.zeros(len(rows), F, dtype=grad_out.dtype, device=grad_out.device).index_add_(0, inv, contrib)
         grid._accumulate(rows, g)
-        return None, None, None
+        return None, None, None, None
 
 
 def _numba_kernels():
@@ -109,7 +123,7 @@ def _numba_kernels():
         return np.int64(gx), np.int64(gy), np.int64(gz), px - gx, py - gy, pz - gz
 
     @nb.njit(inline="always", fastmath=True)
-    def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, c):
+    def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, d0, d1, d2, c):
         """Row offset inside the level and trilinear weight of corner c of the cell."""
         cx = ix + (c & 1)
         cy = iy + ((c >> 1) & 1)
@@ -120,11 +134,11 @@ def _numba_kernels():
         if side > 0:
             h = cx + side * (cy + side * cz)
         else:
-            h = (cx * p0) ^ (cy * p1) ^ (cz * p2)
+            h = (cx * p0 + d0) ^ (cy * p1 + d1) ^ (cz * p2 + d2)
         return h & (T - 1), wx * wy * wz
 
     @nb.njit(parallel=True, fastmath=True, cache=True)
-    def fwd(xn, table, scales, dense, T, p0, p1, p2, out):
+    def fwd(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):
         n = xn.shape[0]
         L = scales.shape[0]
         F = table.shape[1]
@@ -134,13 +148,13 @@ def _numba_kernels():
                     out[i, l * F + f] = 0.0
                 ix, iy, iz, fx, fy, fz = cell(xn, i, scales[l])
                 for c in range(8):
-                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, c)
+                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, d0, d1, d2, c)
                     row = h + l * T
                     for f in range(F):
                         out[i, l * F + f] += w * table[row, f]
 
     @nb.njit(parallel=True, fastmath=True, cache=True)
-    def bwd(xn, grad_out, scales, dense, T, p0, p1, p2, grad_buf, touched, touched_rows, n_touched):
+    def bwd(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touched, touched_rows, n_touched):
         # Corners are recomputed rather than stored (256 B/point saved). One thread per level:
         # levels own disjoint table rows, so the scatter-add never races.
         n = xn.shape[0]
@@ -152,7 +166,7 @@ def _numba_kernels():
             for i in range(n):
                 ix, iy, iz, fx, fy, fz = cell(xn, i, scales[l])
                 for c in range(8):
-                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, c)
+                    h, w = corner(ix, iy, iz, fx, fy, fz, dense[l], T, p0, p1, p2, d0, d1, d2, c)
                     row = h + l * T
                     for f in range(F):
                         grad_buf[row, f] += w * grad_out[i, l * F + f]
@@ -163,21 +177,14 @@ def _numba_kernels():
             n_touched[l] = cnt
 
     @nb.njit(parallel=True, cache=True)
-    def collect(grad_buf, touched, touched_rows, n_touched, n, rows_out, grads_out):
-        # Gather the touched rows' gradients into compact arrays, then clear buffer and flags.
-        L = n_touched.shape[0]
-        starts = np.zeros(L + 1, np.int64)
-        for l in range(L):
-            starts[l + 1] = starts[l] + n_touched[l]
-        for l in nb.prange(L):
-            for k in range(n_touched[l]):
-                row = touched_rows[l * n * 8 + k]
-                j = starts[l] + k
-                rows_out[j] = row
-                for f in range(grad_buf.shape[1]):
-                    grads_out[j, f] = grad_buf[row, f]
-                    grad_buf[row, f] = 0.0
-                touched[row] = False
+    def collect(grad_buf, touched, rows, grads_out):
+        # Gather the touched rows' gradients into a compact array, then clear buffer and flags.
+        for k in nb.prange(rows.shape[0]):
+            row = rows[k]
+            for f in range(grad_buf.shape[1]):
+                grads_out[k, f] = grad_buf[row, f]
+                grad_buf[row, f] = 0.0
+            touched[row] = False
 
     @nb.njit(parallel=True, fastmath=True, cache=True)
     def adam(table, m, v, rows, grads, lr, b1, b2, eps, c1, c2):
@@ -194,42 +201,45 @@ def _numba_kernels():
 
 class _NumbaEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, xn, table, grid):
+    def forward(ctx, xn, table, grid, fn):
         fwd = grid._kernels()[0]
         x = xn.detach().numpy()
         out = np.empty((len(x), grid.spec.out_dim), np.float32)
-        fwd(x, table.detach().numpy(), grid._scales_np, grid._dense_np, grid.spec.table_size, *grid._primes_np, out)
-        ctx.grid, ctx.x = grid, x
+        dense, consts = grid._fn_np[fn]
+        fwd(x, table.detach().numpy(), grid._scales_np, dense, grid.spec.table_size, *consts, out)
+        ctx.grid, ctx.x, ctx.fn = grid, x, fn
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         grid, x = ctx.grid, ctx.x
-        _, bwd, collect, _ = grid._kernels()
+        bwd = grid._kernels()[1]
+        dense, consts = grid._fn_np[ctx.fn]
         L, n = grid.spec.levels, len(x)
         if len(grid._touched_rows) < L * n * 8:  # reused across steps: 8 corners x L levels per point
             grid._touched_rows = np.empty(L * n * 8, np.int64)
         touched_rows = grid._touched_rows
         n_touched = np.zeros(L, np.int64)
         buf, touched = grid._grad_buf.numpy(), grid._touched.numpy()
-        bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np, grid._dense_np,
-            grid.spec.table_size, *grid._primes_np, buf, touched, touched_rows, n_touched)
-        total = int(n_touched.sum())
-        rows = np.empty(total, np.int64)
-        grads = np.empty((total, buf.shape[1]), np.float32)
-        collect(buf, touched, touched_rows, n_touched, n, rows, grads)
-        grid._accumulate(torch.from_numpy(rows), torch.from_numpy(grads))
-        return None, None, None
+        bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np, dense,
+            grid.spec.table_size, *consts, buf, touched, touched_rows, n_touched)
+        # rows first touched by this call (flags persist until collected: lists never overlap)
+        grid._numba_rows.extend(touched_rows[l * n * 8: l * n * 8 + n_touched[l]].copy() for l in range(L))
+        return None, None, None, None
 
 
 class HashGrid(torch.nn.Module):
-    """Hash-encoded feature field over an axis-aligned bound; ``forward(x_world) -> (N, L*F)``."""
+    """Hash-encoded feature field over an axis-aligned bound; ``forward(x_world) -> (N, L*F)``.
 
-    def __init__(self, spec: HashGridSpec, bound: np.ndarray, primes=PRIMES, backend: str = "auto",
-                 init_scale: float = 1e-4, seed: int = 0, device: str | torch.device = "cpu"):
+    ``hash_functions``: the ways the one table can be indexed (``forward(..., fn=i)``); the default
+    is the single instant-NGP hash."""
+
+    def __init__(self, spec: HashGridSpec, bound: np.ndarray, hash_functions: tuple[HashFunction, ...] = (HashFunction(),),
+                 backend: str = "auto", init_scale: float = 1e-4, seed: int = 0,
+                 device: str | torch.device = "cpu"):
         super().__init__()
         self.spec = spec
-        self.primes = tuple(int(p) for p in primes)
+        self.hash_functions = tuple(hash_functions)
         bound = np.asarray(bound, np.float64)
         self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32, device=device))
         self.register_buffer("bound_size", torch.tensor(bound[1] - bound[0], dtype=torch.float32, device=device))
@@ -248,12 +258,13 @@ class HashGrid(torch.nn.Module):
             raise ValueError("the numba backend runs on CPU only")
         self.backend = backend
         self._scales_np = spec.level_scales().astype(np.float32)
-        self._dense_np = spec.level_dense()
-        self._primes_np = tuple(np.int64(p) for p in self.primes)
+        self._fn_np = [(spec.level_dense() if f.dense else np.zeros(spec.levels, np.int64),
+                        tuple(np.int64(v) for v in (*f.primes, *f.offsets))) for f in self.hash_functions]
         if backend == "numba":
             self._grad_buf = torch.zeros_like(self.table)
             self._touched = torch.zeros(len(self.table), dtype=torch.bool)
             self._touched_rows = np.empty(0, np.int64)
+            self._numba_rows: list[np.ndarray] = []  # touched rows awaiting take_sparse_grad
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self._kern = None
 
@@ -265,17 +276,27 @@ class HashGrid(torch.nn.Module):
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
         return ((x - self.bound_min) / self.bound_size).clamp(0.0, 1.0)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        xn = self.normalise(x.to(torch.float32)).contiguous()
+    def forward(self, x: torch.Tensor, fn: int = 0, normalised: bool = False) -> torch.Tensor:
+        """Features of world points ``x`` (clamped to the bound), or of ``normalised`` coordinates
+        taken as they are (warped spaces may leave [0, 1]^3; hashing does not care), through hash
+        function ``fn``."""
+        xn = x.to(torch.float32).contiguous() if normalised else self.normalise(x.to(torch.float32)).contiguous()
         if self.backend == "numba":
-            return _NumbaEncode.apply(xn, self.table, self)
-        return _TorchEncode.apply(xn, self.table, self)
+            return _NumbaEncode.apply(xn, self.table, self, fn)
+        return _TorchEncode.apply(xn, self.table, self, fn)
 
     def _accumulate(self, rows: torch.Tensor, grads: torch.Tensor) -> None:
         self._pending.append((rows, grads))
 
     def take_sparse_grad(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows touched since the last call and their summed gradients (rows unique)."""
+        if self.backend == "numba" and self._numba_rows:
+            # the numba backward accumulates every call into one buffer: collect it once
+            rows = np.concatenate(self._numba_rows)
+            self._numba_rows = []
+            grads = np.empty((len(rows), self.spec.features), np.float32)
+            self._kernels()[2](self._grad_buf.numpy(), self._touched.numpy(), rows, grads)
+            return torch.from_numpy(rows), torch.from_numpy(grads)
         if not self._pending:
             return torch.zeros(0, dtype=torch.long, device=self.table.device), \
                 torch.zeros(0, self.spec.features, device=self.table.device)

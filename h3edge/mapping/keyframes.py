@@ -24,6 +24,7 @@ class KeyframeConfig:
     max_interval: int = 10
     per_iteration: int = 8  # K
     adaptive_pruning: bool = True
+    gradient_aided: bool = True  # H3's voxel score max(cnt^2 g, 1); False: H2's voxel count
 
 
 @dataclass

@@ -2,8 +2,10 @@
 and turns a stream of posed RGB-D frames into a map you can mesh and render (Sec. IV).
 
 Per frame (timed per component, the paper's Table I names): validate and clean the frame
-(``read``); allocate leaf voxels and initialise their SDF priors (``priors``); decide keyframe
-insertion and pick the keyframes for each iteration (``keyframes``); run ``iterations``
+(``read``); allocate leaf voxels and initialise their SDF priors (``priors``); every
+``update_interval`` frames, determine the voxels' texture patterns and refresh the texture
+encoder's warps (``texture``); decide keyframe insertion (scored by the colour gradient) and
+pick the keyframes for each iteration (``keyframes``); run ``iterations``
 optimisation steps on ``rays_per_iteration`` rays drawn evenly from the current frame and the
 selected keyframes (``training``). A bad frame is dropped with a reason (logged and counted); it
 never touches the map.
@@ -24,13 +26,16 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
+from h3edge.mapping.gradient import colour_gradient
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.texture_grid import QuasiHeteroTexture
+from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns, voxel_gradient_stats
 from h3edge.mapping.timing import Timings
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
-from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap
+from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +64,7 @@ class MapSettings:
     train: TrainConfig = dc_field(default_factory=TrainConfig)
     losses: LossWeights = dc_field(default_factory=LossWeights)
     keyframes: KeyframeConfig = dc_field(default_factory=KeyframeConfig)
+    texture: TextureConfig = dc_field(default_factory=TextureConfig)
     render: RenderConfig = dc_field(default_factory=RenderConfig)
 
 
@@ -104,6 +110,7 @@ class Mapper:
         self.train_cfg = dataclasses.replace(settings.train, weights=settings.losses)
         self.voxels = VoxelMap(settings.voxels, self.device)
         self.keyframes = KeyframeSet(settings.keyframes)
+        self.patterns = TexturePatterns(settings.texture)
         self.timings = Timings()
         self.bound = None if bound is None else np.asarray(bound, np.float64)
         self.field: Field | None = None
@@ -122,7 +129,8 @@ class Mapper:
     # ----------------------------------------------------------------- set-up
     def _build_field(self) -> None:
         torch.manual_seed(self.cfg.seed)
-        self.field = Field(self.settings.field, self.bound, self.settings.voxels.voxel_size, self.device)
+        self.field = Field(self.settings.field, self.bound, self.settings.voxels.voxel_size, self.device,
+                           self.settings.texture)
         params = list(self.field.sdf_mlp.parameters()) + list(self.field.color_mlp.parameters())
         self.optimizer = torch.optim.Adam(params, lr=self.settings.train.lr)
 
@@ -192,13 +200,28 @@ class Mapper:
         with self.timings.time("priors"):
             new = self.voxels.allocate(depth, frame.intrinsics, pose, points=pts)
 
+        grad = None
+        tex = self.settings.texture
+        if tex.quasi_heterogeneous and self.frames_mapped % max(1, tex.update_interval) == 0:
+            with self.timings.time("texture"):
+                grad = colour_gradient(frame.color, depth, tex.depth_jump)
+                self.patterns.update(frame.color, depth, frame.intrinsics, pose, pts, self.voxels.locate,
+                                     self.settings.voxels.voxel_size, grad)
+                self.refresh_warps()
+
         with self.timings.time("keyframes"):
-            sub = pts.reshape(-1, 3)[valid[:: self.cfg.observe_stride]]
-            vox, _ = self.voxels.locate(sub)
+            stride = self.cfg.observe_stride
+            sub = valid[::stride]
+            vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
             observed = np.unique(vox[vox >= 0])
             is_kf = self.keyframes.should_insert(observed)
             if is_kf:
-                self.keyframes.insert(frame.index, observed, payload=stored)
+                scores = None
+                if self.settings.keyframes.gradient_aided:  # score(v) = max(cnt^2 g, 1), cnt in pixels
+                    grad = colour_gradient(frame.color, depth, tex.depth_jump) if grad is None else grad
+                    _, cnt, g = voxel_gradient_stats(vox, grad.reshape(-1)[sub], float(stride))
+                    scores = np.maximum(cnt * cnt * g, 1.0)
+                self.keyframes.insert(frame.index, observed, scores, payload=stored)
             picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
 
         losses: dict = {}
@@ -211,6 +234,13 @@ class Mapper:
         self.last_timestamp = frame.timestamp
         self.timings.add("frame", time.perf_counter() - t_frame + read_seconds)
         return FrameResult(frame.index, True, new_voxels=len(new), keyframe=is_kf, losses=losses)
+
+    def refresh_warps(self) -> None:
+        """Hand the current texture classes and directions to the quasi-heterogeneous encoder."""
+        if isinstance(self.field.texture, QuasiHeteroTexture):
+            n = len(self.voxels)
+            self.field.texture.set_warps(unpack(self.voxels.voxel_keys), self.settings.voxels.voxel_size,
+                                         self.patterns.classes(n), self.patterns.dirs, self.patterns.n_dirs)
 
     def _sample_rays(self, frames: list[StoredFrame]) -> RayBatch:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
@@ -263,5 +293,7 @@ class Mapper:
                 "voxels_refused": self.voxels.refused, "vertices": len(self.voxels.vertex_keys),
                 "keyframes": len(self.keyframes.keyframes), "keyframes_pruned": self.keyframes.pruned,
                 "out_of_bound_points": self.out_of_bound_points, "device": str(self.device),
+                "texture_classes": self.patterns.counts(len(self.voxels)) if self.settings.texture.quasi_heterogeneous else {},
                 "memory_bytes": {"keyframes": kf_bytes, "hash_grids_with_adam": grids,
-                                 "priors": len(self.voxels.vertex_keys) * 4 * 3}}
+                                 "priors": len(self.voxels.vertex_keys) * 4 * 3,
+                                 "texture_patterns": self.patterns.nbytes}}

@@ -2,8 +2,13 @@
 
 Two stages per ray, both restricted to allocated leaf voxels:
 1. coarse: march the ray through the voxel grid at ``coarse_step`` evaluating only the octree
-   SDF priors (trilinear, cheap), and take the first + to - crossing (linear interpolation); a
-   fused numba kernel over a dense voxel-id grid of the map's bounding box, parallel over rays;
+   SDF priors (trilinear, cheap), and take the first + to - crossing (linear interpolation); where
+   the ray enters the allocated region the entry point is found by bisection and its prior used,
+   so a surface just inside the region's face is not stepped over (an entry prior just below zero,
+   within ``exit_tolerance``, is a hit at the face); likewise where it leaves the region with the
+   prior still positive (the exit point's prior decides, and a prior just short of zero is
+   extrapolated to its crossing); a fused numba kernel over a
+   dense voxel-id grid of the map's bounding box, parallel over rays;
 2. fine: ``fine_samples`` samples ``fine_step`` apart centred on that crossing, full SDF (prior
    + residual) and the paper's volume rendering weights sigma(s/beta) sigma(-s/beta) give the
    depth; colour is the colour field at the rendered surface point. With the paper's kernel
@@ -29,6 +34,9 @@ class RenderConfig:
     near: float = 0.05  # m (z-depth)
     far: float = 10.0  # m, the sensor's max depth (authors: 10 m)
     coarse_step: float = 0.02  # m, prior march step along z
+    # |prior| (truncation units) within which a ray leaving (entering) the allocated region counts as
+    # reaching the surface just behind (in front of) its face: voxels end where depth points end
+    exit_tolerance: float = 0.5
     fine_samples: int = 9
     fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
     chunk: int = 65536  # rays per fine-stage batch
@@ -63,7 +71,7 @@ def _march_kernel():
         return vid, s
 
     @nb.njit(parallel=True, fastmath=False, cache=False)
-    def march(o, dirs, near, far, step, grid, g0, vs, vv, priors, out):
+    def march(o, dirs, near, far, step, grid, g0, vs, vv, priors, exit_tol, out):
         nx, ny, nz = grid.shape
         lo = (g0[0] * vs, g0[1] * vs, g0[2] * vs)
         hi = ((g0[0] + nx) * vs, (g0[1] + ny) * vs, (g0[2] + nz) * vs)
@@ -89,9 +97,45 @@ def _march_kernel():
                 vid, s = trilinear((o[0] + dirs[r, 0] * t) / vs, (o[1] + dirs[r, 1] * t) / vs,
                                    (o[2] + dirs[r, 2] * t) / vs, grid, g0, vv, priors)
                 if vid < 0:
+                    if prev > 0.0:
+                        # leaving the allocated region while the prior is still positive: find the
+                        # exit point (bisection); the surface may lie in the last sliver before it
+                        a_, b_ = prev_t, t
+                        s_in = prev
+                        for _ in range(8):
+                            mid = 0.5 * (a_ + b_)
+                            v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
+                                                     (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
+                            if v_mid < 0:
+                                b_ = mid
+                            else:
+                                a_, s_in = mid, s_mid
+                        if s_in <= 0.0:
+                            out[r] = prev_t + (a_ - prev_t) * prev / (prev - s_in)
+                            break
+                        if s_in < exit_tol and s_in < prev and a_ > prev_t:
+                            # just short of zero at the region's back face: extrapolate a little
+                            out[r] = min(a_ + (a_ - prev_t) * s_in / (prev - s_in), a_ + step)
+                            break
                     prev = math.nan
                     t += step
                     continue
+                if prev != prev and t > t0:
+                    # just entered the allocated region: find the entry point (bisection) and use
+                    # the prior there, so a surface just inside the region's face is not stepped over
+                    a_, b_ = t - step, t
+                    for _ in range(8):
+                        mid = 0.5 * (a_ + b_)
+                        v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
+                                                 (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
+                        if v_mid < 0:
+                            a_ = mid
+                        else:
+                            b_, prev, prev_t = mid, s_mid, mid
+                    if -exit_tol < prev <= 0.0:
+                        # entering just behind the surface: it lies at the region's front face
+                        out[r] = prev_t
+                        break
                 if prev > 0.0 and s <= 0.0:
                     out[r] = prev_t + (t - prev_t) * prev / (prev - s)
                     break
@@ -119,7 +163,7 @@ def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderCon
     priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
     return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), cfg.near,
                               cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
-                              voxels.voxel_vertices, priors, out)
+                              voxels.voxel_vertices, priors, cfg.exit_tolerance, out)
 
 
 class PriorLookup:
