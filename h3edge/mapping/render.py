@@ -40,6 +40,7 @@ class RenderConfig:
     fine_samples: int = 9
     fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
     chunk: int = 65536  # rays per fine-stage batch
+    retries: int = 2  # marches past a crossing that got no rendering weight
     max_pixels: int = 1920 * 1080  # larger requests are refused
 
 
@@ -71,13 +72,13 @@ def _march_kernel():
         return vid, s
 
     @nb.njit(parallel=True, fastmath=False, cache=False)
-    def march(o, dirs, near, far, step, grid, g0, vs, vv, priors, exit_tol, out):
+    def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
         nx, ny, nz = grid.shape
         lo = (g0[0] * vs, g0[1] * vs, g0[2] * vs)
         hi = ((g0[0] + nx) * vs, (g0[1] + ny) * vs, (g0[2] + nz) * vs)
         for r in nb.prange(dirs.shape[0]):
             out[r] = -1.0
-            t0, t1 = near, far
+            t0, t1 = nears[r], far
             for a in range(3):
                 d = dirs[r, a]
                 if abs(d) < 1e-12:
@@ -152,16 +153,19 @@ def _march_kernel():
     return _KERNEL
 
 
-def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig) -> np.ndarray:
+def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig,
+                    near: np.ndarray | None = None) -> np.ndarray:
     """Ray parameter (= z-depth for camera-z-normalised ``dirs``) of each ray's first + to -
-    crossing of the prior SDF inside allocated voxels; -1 where there is none."""
+    crossing of the prior SDF inside allocated voxels, searched from ``near`` (per ray; default
+    ``cfg.near``); -1 where there is none."""
     g0, grid = voxels.dense_index()
     out = np.empty(len(dirs), np.float64)
     if len(voxels) == 0:
         out[:] = -1
         return out
     priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
-    return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), cfg.near,
+    nears = np.full(len(dirs), cfg.near) if near is None else np.ascontiguousarray(near, np.float64)
+    return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), nears,
                               cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
                               voxels.voxel_vertices, priors, cfg.exit_tolerance, out)
 
@@ -191,16 +195,32 @@ class PriorLookup:
 @torch.no_grad()
 def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: float, cfg: RenderConfig
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``."""
+    """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray whose
+    prior crossing gets no rendering weight (the residual moved the surface away from it) marches
+    on past that window, up to ``cfg.retries`` times."""
     dev = next(field_.parameters()).device
     n = len(dirs)
-    t_hit = prior_crossings(origin, dirs, voxels, cfg)
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
-    rays = np.flatnonzero(t_hit > 0)
+    t_hit = prior_crossings(origin, dirs, voxels, cfg)
     lookup = PriorLookup(voxels)
+    todo = np.flatnonzero(t_hit > 0)
+    for attempt in range(cfg.retries + 1):
+        missed = _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
+        if attempt == cfg.retries or len(missed) == 0:
+            break
+        t_new = prior_crossings(origin, dirs[missed], voxels, cfg,
+                                near=t_hit[missed] + (cfg.fine_samples // 2 + 1) * cfg.fine_step)
+        t_hit[missed] = t_new
+        todo = missed[t_new > 0]
+    return color, depth
+
+
+def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, dev, depth, color) -> np.ndarray:
+    """Render ``rays`` around their crossings into ``depth`` / ``color``; returns the rays without weight."""
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
     o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
+    missed = []
     for s in range(0, len(rays), cfg.chunk):
         idx = rays[s:s + cfg.chunk]
         d = torch.from_numpy(dirs[idx].astype(np.float32)).to(dev)
@@ -216,7 +236,8 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
         hit_np = hit.cpu().numpy()
         depth[idx[hit_np]] = out.depth[hit].cpu().numpy()
         color[idx[hit_np]] = col.float().cpu().numpy()
-    return color, depth
+        missed.append(idx[~hit_np])
+    return np.concatenate(missed) if missed else np.zeros(0, np.int64)
 
 
 class MapRenderer:
