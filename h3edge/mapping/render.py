@@ -36,7 +36,7 @@ class RenderConfig:
     coarse_step: float = 0.02  # m, prior march step along z
     # |prior| (truncation units) within which a ray leaving (entering) the allocated region counts as
     # reaching the surface just behind (in front of) its face: voxels end where depth points end
-    exit_tolerance: float = 0.5
+    exit_tolerance: float = 0.1  # measured: 0.1 best on the sim scene, near-best on Replica (0.5 lets grazing rays hit)
     fine_samples: int = 9
     fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
     chunk: int = 65536  # rays per fine-stage batch
