@@ -154,11 +154,12 @@ def class_picture(mapper, seq, path: Path, views: int = 3) -> dict:
         rgb[depth <= 0] = 0
         blend = (0.55 * rgb + 0.45 * f.color).astype(np.uint8)
         strips.append(np.concatenate([f.color, blend], 1))
-    img = np.concatenate(strips, 0)[..., ::-1].copy()
+    img = np.concatenate(strips, 0)[..., ::-1]
+    img = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)  # docs-sized
     for k, (c, name) in enumerate(((RICH, "rich + low-freq. directions (affine warps)"), (WEAK, "weak (scaling warp)"),
                                   (PLAIN, "unstructured rich (identity)"))):
-        cv2.rectangle(img, (10, 10 + 26 * k), (30, 30 + 26 * k), CLASS_BGR[c], -1)
-        cv2.putText(img, name, (38, 27 + 26 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+        cv2.rectangle(img, (6, 6 + 16 * k), (18, 18 + 16 * k), CLASS_BGR[c], -1)
+        cv2.putText(img, name, (24, 17 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
     cv2.imwrite(str(path), img)
     return {k: int((vcls == c).sum()) for k, c in (("rich", RICH), ("weak", WEAK), ("plain", PLAIN))}
 
