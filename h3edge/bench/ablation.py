@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from h3edge.bench.tables import markdown_table
 from h3edge.config import Profile, load_profile
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import MapSettings
@@ -105,15 +106,15 @@ def row(name: str, table: str, settings: MapSettings, res: dict) -> dict:
             "keyframes": res["stats"].get("keyframes"), "texture_classes": res["stats"].get("texture_classes")}
 
 
+COLUMNS = [("variant", lambda r: r["variant"], None), ("PSNR held-out [dB]", lambda r: r["psnr_heldout_db"], 2),
+           ("SSIM", lambda r: r["ssim_heldout"], 3), ("Depth L1 [cm]", lambda r: r["depth_l1_heldout_cm"], 3),
+           ("Acc [cm]", lambda r: r["accuracy_cm"], 3), ("Comp [cm]", lambda r: r["completion_cm"], 3),
+           ("frame [ms]", lambda r: r["frame_ms_median"], 0),
+           ("texture [ms/frame]", lambda r: r["texture_ms_per_frame"], 1), ("keyframes", lambda r: r["keyframes"], None)]
+
+
 def format_table(title: str, rows: list[dict]) -> str:
-    f = lambda v, p=2: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
-    out = [f"### {title}", "", "| variant | PSNR held-out [dB] | SSIM | Depth L1 [cm] | Acc [cm] | Comp [cm] | "
-           "frame [ms] | texture [ms/frame] | keyframes |", "|---" * 9 + "|"]
-    for r in rows:
-        out.append(f"| {r['variant']} | {f(r['psnr_heldout_db'])} | {f(r['ssim_heldout'], 3)} | "
-                   f"{f(r['depth_l1_heldout_cm'], 3)} | {f(r['accuracy_cm'], 3)} | {f(r['completion_cm'], 3)} | "
-                   f"{f(r['frame_ms_median'], 0)} | {f(r['texture_ms_per_frame'], 1)} | {r['keyframes']} |")
-    return "\n".join(out)
+    return markdown_table(title, COLUMNS, rows)
 
 
 def plot_curve(rows: list[dict], path: Path) -> None:

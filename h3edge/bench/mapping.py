@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from h3edge.bench.tables import cell, markdown_table
 from h3edge.config import load_profile
 from h3edge.eval.evaluate import evaluate
 from h3edge.geometry.raycast import MeshRaycaster
@@ -118,16 +119,21 @@ def _row(name: str, per_frame: list[float], res: dict) -> dict:
             "depth_l1_train_cm": t.get("depth_l1_cm"), "depth_l1_heldout_cm": h.get("depth_l1_cm")}
 
 
+def _ratio(r: dict) -> str:
+    v = r["completion_ratio"]
+    return cell(None if v is None else 100 * v, 1) + " %"
+
+
+COLUMNS = [("method", lambda r: r["method"], None), ("frame [ms] median", lambda r: r["frame_ms_median"], 0),
+           ("Acc [cm]", lambda r: r["accuracy_cm"], 2), ("Comp [cm]", lambda r: r["completion_cm"], 2),
+           ("Comp ratio", _ratio, None), ("PSNR train", lambda r: r["psnr_train_db"], 2),
+           ("PSNR held-out", lambda r: r["psnr_heldout_db"], 2), ("SSIM held-out", lambda r: r["ssim_heldout"], 3),
+           ("Depth L1 train [cm]", lambda r: r["depth_l1_train_cm"], 3),
+           ("Depth L1 held-out [cm]", lambda r: r["depth_l1_heldout_cm"], 3)]
+
+
 def format_rows(title: str, rows: list[dict]) -> str:
-    f = lambda v, p=2: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
-    out = [f"### {title}", "", "| method | frame [ms] median | Acc [cm] | Comp [cm] | Comp ratio | PSNR train | "
-           "PSNR held-out | SSIM held-out | Depth L1 train [cm] | Depth L1 held-out [cm] |", "|---" * 10 + "|"]
-    for r in rows:
-        out.append(f"| {r['method']} | {f(r['frame_ms_median'], 0)} | {f(r['accuracy_cm'])} | {f(r['completion_cm'])} | "
-                   f"{f(100 * r['completion_ratio'] if r['completion_ratio'] is not None else None, 1)} % | "
-                   f"{f(r['psnr_train_db'])} | {f(r['psnr_heldout_db'])} | {f(r['ssim_heldout'], 3)} | "
-                   f"{f(r['depth_l1_train_cm'], 3)} | {f(r['depth_l1_heldout_cm'], 3)} |")
-    return "\n".join(out)
+    return markdown_table(title, COLUMNS, rows)
 
 
 def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_voxel: float) -> dict:

@@ -89,8 +89,8 @@ class Field(nn.Module):
         return prior.index_add(0, idx, res), inside
 
     def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
-        if voxel_index is None:
-            voxel_index = torch.zeros(len(points), dtype=torch.long, device=points.device)
+        if voxel_index is None:  # unknown voxels: no warps apply (identity features only)
+            voxel_index = torch.full((len(points),), -1, dtype=torch.long, device=points.device)
         return self.color_mlp(self.texture(points, voxel_index))
 
     def sparse_step(self, lr: float) -> None:

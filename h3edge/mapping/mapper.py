@@ -238,9 +238,9 @@ class Mapper:
     def refresh_warps(self) -> None:
         """Hand the current texture classes and directions to the quasi-heterogeneous encoder."""
         if isinstance(self.field.texture, QuasiHeteroTexture):
-            n = len(self.voxels)
+            classes = self.patterns.classes(len(self.voxels))  # grows the pattern state to every voxel
             self.field.texture.set_warps(unpack(self.voxels.voxel_keys), self.settings.voxels.voxel_size,
-                                         self.patterns.classes(n), self.patterns.dirs, self.patterns.n_dirs)
+                                         classes, self.patterns.dirs, self.patterns.n_dirs)
 
     def _sample_rays(self, frames: list[StoredFrame]) -> RayBatch:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))

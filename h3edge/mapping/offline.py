@@ -85,6 +85,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
         (out / "metrics.md").write_text(metrics_md + "\n")
         run["metrics"] = res
     (out / "run.json").write_text(json.dumps(run, indent=1, default=str) + "\n")
+    # printed tables: the timings again, now with the evaluation's renders in them
     run["tables"] = "\n\n".join(t for t in (metrics_md, format_timings(mapper.timings.summary(),
                                 f"per-component timings ({profile.name}, {mapper.device})",
                                 frames=mapper.frames_mapped)) if t)

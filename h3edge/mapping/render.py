@@ -71,6 +71,21 @@ def _march_kernel():
             s += w * priors[vv[vid, c]]
         return vid, s
 
+    @nb.njit(inline="always")
+    def face(o, dirs, r, t_in, s_in, t_out, grid, g0, vs, vv, priors):
+        """Bisect between an allocated sample (t_in, prior s_in) and an unallocated one (t_out):
+        the allocated point nearest the region's face and its prior (t_in, s_in if none is nearer)."""
+        a, b = t_in, t_out
+        for _ in range(8):
+            mid = 0.5 * (a + b)
+            v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
+                                     (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
+            if v_mid < 0:
+                b = mid
+            else:
+                a, t_in, s_in = mid, mid, s_mid
+        return t_in, s_in
+
     @nb.njit(parallel=True, fastmath=False, cache=False)
     def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
         nx, ny, nz = grid.shape
@@ -101,16 +116,7 @@ def _march_kernel():
                     if prev > 0.0:
                         # leaving the allocated region while the prior is still positive: find the
                         # exit point (bisection); the surface may lie in the last sliver before it
-                        a_, b_ = prev_t, t
-                        s_in = prev
-                        for _ in range(8):
-                            mid = 0.5 * (a_ + b_)
-                            v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
-                                                     (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
-                            if v_mid < 0:
-                                b_ = mid
-                            else:
-                                a_, s_in = mid, s_mid
+                        a_, s_in = face(o, dirs, r, prev_t, prev, t, grid, g0, vs, vv, priors)
                         if s_in <= 0.0:
                             out[r] = prev_t + (a_ - prev_t) * prev / (prev - s_in)
                             break
@@ -124,16 +130,8 @@ def _march_kernel():
                 if prev != prev and t > t0:
                     # just entered the allocated region: find the entry point (bisection) and use
                     # the prior there, so a surface just inside the region's face is not stepped over
-                    a_, b_ = t - step, t
-                    for _ in range(8):
-                        mid = 0.5 * (a_ + b_)
-                        v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
-                                                 (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
-                        if v_mid < 0:
-                            a_ = mid
-                        else:
-                            b_, prev, prev_t = mid, s_mid, mid
-                    if -exit_tol < prev <= 0.0:
+                    prev_t, prev = face(o, dirs, r, t, s, t - step, grid, g0, vs, vv, priors)
+                    if prev_t < t and -exit_tol < prev <= 0.0:
                         # entering just behind the surface: it lies at the region's front face
                         out[r] = prev_t
                         break

@@ -59,7 +59,6 @@ class QuasiHeteroTexture(nn.Module):
         self.block = spec.out_dim
         self.out_dim = (M + 2) * spec.out_dim
         dev = torch.device(device)
-        self.voxel_size_n = 0.0  # voxel edge in normalised coordinates
         self.register_buffer("centres", torch.zeros(0, 3, device=dev))  # normalised voxel centres
         self.register_buffer("weak", torch.zeros(0, dtype=torch.bool, device=dev))
         self.register_buffer("n_dirs", torch.zeros(0, dtype=torch.long, device=dev))

@@ -230,13 +230,12 @@ class VoxelMap:
         """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel
         (0 outside); ``located`` = :meth:`locate`'s answer for these points, when the caller has it."""
         vox, frac = self.locate(points.detach().cpu().numpy()) if located is None else located
-        inside = vox >= 0
+        inside = torch.from_numpy(vox >= 0).to(points.device)
         f = torch.from_numpy(frac.astype(np.float32)).to(points.device)
         vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
         corners = torch.from_numpy(CORNERS).to(points.device).bool()
         w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
-        sdf = (self.priors[vid] * w).sum(1) * torch.from_numpy(inside).to(points.device)
-        return sdf, torch.from_numpy(inside).to(points.device)
+        return (self.priors[vid] * w).sum(1) * inside, inside
 
     def dense_index(self) -> tuple[np.ndarray, np.ndarray]:
         """(origin ijk (3,), int32 grid of voxel ids over the map's bounding box, -1 = empty):
