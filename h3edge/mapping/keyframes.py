@@ -25,6 +25,7 @@ class KeyframeConfig:
     per_iteration: int = 8  # K
     adaptive_pruning: bool = True
     gradient_aided: bool = True  # H3's voxel score max(cnt^2 g, 1); False: H2's voxel count
+    stored_pixels: int = 0  # valid pixels a keyframe keeps for ray sampling (0: all of them)
 
 
 @dataclass

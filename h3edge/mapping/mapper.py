@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
+from typing import Callable
 from dataclasses import field as dc_field
 
 import numpy as np
@@ -29,8 +30,8 @@ from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.gradient import colour_gradient
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
 from h3edge.mapping.losses import LossWeights
-from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns, voxel_gradient_stats
 from h3edge.mapping.timing import Timings
@@ -80,17 +81,32 @@ class FrameResult:
 
 @dataclass
 class StoredFrame:
-    """What a keyframe keeps of its frame."""
+    """The pixels of a frame that training draws rays from: the current frame keeps every valid
+    pixel; a keyframe keeps a fixed random subset of them (``keyframes.stored_pixels``), which is
+    how the keyframe store stays compressed (~11 bytes per kept pixel instead of the full image)."""
 
-    color: np.ndarray  # uint8 (H, W, 3)
-    depth: np.ndarray  # float32 (H, W), cleaned
+    pix: np.ndarray  # int32 flat pixel indices (row-major) of valid-depth pixels
+    rgb: np.ndarray  # uint8 (n, 3) colour at those pixels
+    depth: np.ndarray  # float32 (n,) cleaned depth at those pixels
     pose: np.ndarray
     intrinsics: Intrinsics
-    valid: np.ndarray  # flat indices of pixels with valid depth
+
+    @classmethod
+    def from_images(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intr: Intrinsics,
+                    valid: np.ndarray) -> "StoredFrame":
+        return cls(valid, color.reshape(-1, 3)[valid], depth.reshape(-1)[valid], pose, intr)
+
+    def subset(self, n: int, rng: np.random.Generator) -> "StoredFrame":
+        """At most ``n`` of the pixels, drawn without replacement (0: all of them)."""
+        if n <= 0 or len(self.pix) <= n:
+            return self
+        keep = np.sort(rng.choice(len(self.pix), n, replace=False))
+        return StoredFrame(self.pix[keep].copy(), self.rgb[keep].copy(), self.depth[keep].copy(), self.pose,
+                           self.intrinsics)
 
     @property
     def nbytes(self) -> int:
-        return self.color.nbytes + self.depth.nbytes + self.valid.nbytes
+        return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16
 
 
 def resolve_device(name: str) -> torch.device:
@@ -123,6 +139,9 @@ class Mapper:
         self.last_timestamp: float | None = None
         self.out_of_bound_points = 0
         self._rays_cache: dict[Intrinsics, np.ndarray] = {}
+        # called on the mapping thread after every training step: where a service hands out
+        # consistent snapshots without waiting for the whole frame
+        self.step_hook: Callable[[], None] | None = None
         if self.bound is not None:
             self._build_field()
 
@@ -194,7 +213,7 @@ class Mapper:
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         if len(valid) < self.cfg.min_valid_fraction * depth.size:
             return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
-        stored = StoredFrame(frame.color, depth, pose, frame.intrinsics, valid)
+        stored = StoredFrame.from_images(frame.color, depth, pose, frame.intrinsics, valid)
         self.timings.add("read", time.perf_counter() - t0 + read_seconds)
 
         with self.timings.time("priors"):
@@ -221,7 +240,8 @@ class Mapper:
                     grad = colour_gradient(frame.color, depth, tex.depth_jump) if grad is None else grad
                     _, cnt, g = voxel_gradient_stats(vox, grad.reshape(-1)[sub], float(stride))
                     scores = np.maximum(cnt * cnt * g, 1.0)
-                self.keyframes.insert(frame.index, observed, scores, payload=stored)
+                self.keyframes.insert(frame.index, observed, scores,
+                                       payload=stored.subset(self.settings.keyframes.stored_pixels, self.rng))
             picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
 
         losses: dict = {}
@@ -230,6 +250,8 @@ class Mapper:
                 rays = self._sample_rays([stored] + [k.payload for k in kfs])
                 losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.generator,
                                     self.prior_opt)
+                if self.step_hook is not None:
+                    self.step_hook()
         self.frames_mapped += 1
         self.last_timestamp = frame.timestamp
         self.timings.add("frame", time.perf_counter() - t_frame + read_seconds)
@@ -246,35 +268,30 @@ class Mapper:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
         o, d, z, c = [], [], [], []
         for f in frames:
-            pix = f.valid[self.rng.integers(0, len(f.valid), n_each)]
-            cam = self._camera_rays(f.intrinsics)[pix]
+            j = self.rng.integers(0, len(f.pix), n_each)
+            cam = self._camera_rays(f.intrinsics)[f.pix[j]]
             d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
             o.append(np.broadcast_to(f.pose[:3, 3].astype(np.float32), (n_each, 3)))
-            z.append(f.depth.reshape(-1)[pix])
-            c.append(f.color.reshape(-1, 3)[pix])
+            z.append(f.depth[j])
+            c.append(f.rgb[j])
         dev = self.device
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731
         return RayBatch(t(o), t(d), t(z), t(c) / 255.0)
 
     # ---------------------------------------------------------------- queries
-    def renderer(self) -> MapRenderer:
+    def view(self) -> MapView:
+        """The live map as a :class:`MapView` (``.frozen()`` copies it for queries beside training)."""
         if self.field is None:
             raise RuntimeError("nothing mapped yet")
-        return MapRenderer(self.field, self.voxels, self.train_cfg.beta, self.settings.render)
+        return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.train_cfg.beta,
+                       self.settings.render, self.cfg.mesh_resolution, self.frames_mapped)
+
+    def renderer(self) -> MapRenderer:
+        return self.view().renderer()
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         with self.timings.time("render"):
-            return self.renderer().render(intr, c2w)
-
-    @torch.no_grad()
-    def _sdf_np(self, pts: np.ndarray) -> np.ndarray:
-        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        return self.field.sdf(p, self.voxels)[0].cpu().numpy()
-
-    @torch.no_grad()
-    def _color_np(self, pts: np.ndarray) -> np.ndarray:
-        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        return self.field.color(p, self.voxels.voxel_ids(p)).cpu().numpy()
+            return self.view().render(intr, c2w)
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True
              ) -> trimesh.Trimesh:
@@ -282,9 +299,7 @@ class Mapper:
         if self.field is None or len(self.voxels) == 0:
             return trimesh.Trimesh()
         with self.timings.time("mesh"):
-            return extract_mesh(self.voxels.voxel_keys, self.settings.voxels.voxel_size, self._sdf_np,
-                                resolution or self.cfg.mesh_resolution, self._color_np if color else None,
-                                aabb=aabb)
+            return self.view().mesh(resolution, aabb, color)
 
     def stats(self) -> dict:
         kf_bytes = sum(k.payload.nbytes for k in self.keyframes.keyframes if k.payload is not None)

@@ -1,0 +1,92 @@
+"""Read-only views of the map for queries: mesh and render from a field + voxel map.
+
+:class:`MapView` answers mesh and render requests from a field and its voxels. The mapper uses one
+over its live state; a service takes :meth:`MapView.frozen` copies (the tables, MLPs, priors and
+voxel index, without optimiser state: ~2x the tables' bytes, tens of ms) so that a long mesh or
+render runs beside training without seeing half-updated parameters or holding the mapper up.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+import trimesh
+
+from h3edge.geometry.camera import Intrinsics
+from h3edge.mapping.field import Field
+from h3edge.mapping.mesh import extract_mesh
+from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.voxels import VoxelMap
+
+
+def _inference_copy(field: Field) -> Field:
+    """Deep copy of ``field`` without optimiser state or gradient scratch (not trainable)."""
+    memo: dict = {}
+    for g in field.hash_grids():
+        for name in ("adam_m", "adam_v", "_grad_buf", "_touched"):
+            if hasattr(g, name):
+                memo[id(getattr(g, name))] = torch.zeros(0)
+        if hasattr(g, "_touched_rows"):
+            memo[id(g._touched_rows)] = np.empty(0, np.int64)
+        if g._kern is not None:
+            memo[id(g._kern)] = g._kern  # compiled kernels are shared, not copied
+    with torch.no_grad():
+        out = copy.deepcopy(field, memo)
+    for p in out.parameters():
+        p.requires_grad_(False)
+    return out
+
+
+def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
+    out = copy.copy(voxels)
+    out.voxels = copy.deepcopy(voxels.voxels)
+    out.vertices = copy.deepcopy(voxels.vertices)
+    out.voxel_vertices = voxels.voxel_vertices.copy()
+    out.priors = voxels.priors.detach().clone()
+    out.prior_set = voxels.prior_set.copy()
+    return out
+
+
+class MapView:
+    def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, beta: float, render_cfg: RenderConfig,
+                 mesh_resolution: int, frames_mapped: int = 0):
+        self.field, self.voxels = field, voxels
+        self.voxel_size, self.beta, self.render_cfg = voxel_size, beta, render_cfg
+        self.mesh_resolution = mesh_resolution
+        self.frames_mapped = frames_mapped
+
+    def frozen(self) -> "MapView":
+        """An independent copy (call where the field is not being updated)."""
+        return MapView(_inference_copy(self.field), _voxels_copy(self.voxels), self.voxel_size, self.beta,
+                       self.render_cfg, self.mesh_resolution, self.frames_mapped)
+
+    @property
+    def device(self) -> torch.device:
+        return self.voxels.device
+
+    @torch.no_grad()
+    def sdf_np(self, pts: np.ndarray) -> np.ndarray:
+        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
+        return self.field.sdf(p, self.voxels)[0].cpu().numpy()
+
+    @torch.no_grad()
+    def color_np(self, pts: np.ndarray) -> np.ndarray:
+        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
+        return self.field.color(p, self.voxels.voxel_ids(p)).cpu().numpy()
+
+    def renderer(self) -> MapRenderer:
+        return MapRenderer(self.field, self.voxels, self.beta, self.render_cfg)
+
+    def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit)."""
+        return self.renderer().render(intr, c2w)
+
+    def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True
+             ) -> trimesh.Trimesh:
+        """Marching-cubes mesh of the map, vertex colours from the colour field."""
+        if len(self.voxels) == 0:
+            return trimesh.Trimesh()
+        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, self.sdf_np, resolution or self.mesh_resolution,
+                            self.color_np if color else None, aabb=aabb)

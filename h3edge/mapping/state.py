@@ -1,0 +1,162 @@
+"""The mapper's complete state as plain data (a JSON-able ``meta`` dict + named numpy arrays), and
+back: what a checkpoint holds, so a restored mapper goes on mapping exactly where it stopped.
+
+Hash tables are stored sparsely: only rows the optimiser ever touched (non-zero Adam second
+moment) are written with their Adam state; the others still hold the table's seeded
+initialisation, which the restoring :class:`Field` recreates. Keyframes keep their stored pixel
+subsets; the texture encoder's per-voxel warps are restored as they were (not recomputed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from h3edge.geometry.camera import Intrinsics
+from h3edge.mapping.keyframes import Keyframe
+from h3edge.mapping.mapper import Mapper, MapSettings, StoredFrame
+from h3edge.mapping.voxels import KeyIndex
+
+STATE_VERSION = 1
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy().copy()
+
+
+def _concat(parts: list[np.ndarray], dtype, width: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
+    offsets = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
+    data = np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *width), dtype)
+    return data, offsets
+
+
+def _split(data: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
+    return [data[offsets[i]:offsets[i + 1]] for i in range(len(offsets) - 1)]
+
+
+def _index_state(k: KeyIndex) -> np.ndarray:
+    return k.keys.copy()
+
+
+def _restore_index(keys: np.ndarray) -> KeyIndex:
+    k = KeyIndex()
+    order = np.argsort(keys, kind="stable")
+    k.keys, k._sorted, k._ids = keys.astype(np.int64), keys[order].astype(np.int64), order.astype(np.int64)
+    return k
+
+
+def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
+    """Copy everything the mapper needs to resume (call between frames, on the mapper's thread)."""
+    if m.field is None:
+        raise RuntimeError("nothing mapped yet")
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict = {"state_version": STATE_VERSION, "frames_mapped": m.frames_mapped, "dropped": dict(m.dropped),
+                  "last_timestamp": m.last_timestamp, "out_of_bound_points": m.out_of_bound_points,
+                  "bound": m.bound.tolist(), "voxels_refused": m.voxels.refused,
+                  "rng": m.rng.bit_generator.state, "grid_steps": {}, "prior_steps": m.prior_opt.steps,
+                  "texture_updates": m.patterns.updates}
+    # field: hash grids sparsely, everything else whole
+    grids = {"geo": m.field.geo_grid, "tex": m.field.texture.grid}
+    for name, g in grids.items():
+        rows = torch.nonzero(((g.adam_v != 0) | (g.adam_m != 0)).any(1)).squeeze(1)  # every row Adam moved
+        arrays[f"grid/{name}/rows"] = _np(rows)
+        for part in ("table", "adam_m", "adam_v"):
+            arrays[f"grid/{name}/{part}"] = _np(getattr(g, part)[rows])
+        meta["grid_steps"][name] = g.adam_steps
+    for k, v in m.field.state_dict().items():
+        if k.endswith(("table", "adam_m", "adam_v")):
+            continue
+        arrays[f"field/{k}"] = _np(v)
+    opt = m.optimizer.state_dict()
+    meta["optimizer_groups"] = opt["param_groups"]
+    for i, st in opt["state"].items():
+        for k, v in st.items():
+            arrays[f"opt/{i}/{k}"] = _np(v) if torch.is_tensor(v) else np.asarray(v)
+    arrays["torch_generator"] = _np(m.generator.get_state())
+    # voxels and priors
+    vx = m.voxels
+    arrays["voxels/keys"] = _index_state(vx.voxels)
+    arrays["voxels/vertex_keys"] = _index_state(vx.vertices)
+    arrays["voxels/voxel_vertices"] = vx.voxel_vertices.copy()
+    arrays["voxels/priors"] = _np(vx.priors)
+    arrays["voxels/prior_set"] = vx.prior_set.copy()
+    arrays["prior_opt/m"] = _np(m.prior_opt.m)
+    arrays["prior_opt/v"] = _np(m.prior_opt.v)
+    # keyframes
+    kfs = m.keyframes.keyframes
+    meta["keyframes"] = [{"frame_id": k.frame_id, "selected": k.selected_this_round,
+                          "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist()} for k in kfs]
+    meta["keyframe_policy"] = {"frames_since_insert": m.keyframes.frames_since_insert, "pruned": m.keyframes.pruned}
+    for name, get, dt, w in (("voxels", lambda k: k.voxels, np.int64, ()), ("scores", lambda k: k.scores, np.float64, ()),
+                             ("pix", lambda k: k.payload.pix, np.int32, ()), ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
+                             ("depth", lambda k: k.payload.depth, np.float32, ())):
+        arrays[f"kf/{name}"], arrays[f"kf/{name}_offsets"] = _concat([get(k) for k in kfs], dt, w)
+    arrays["kf/observed"] = m.keyframes.observed.copy()
+    # texture patterns
+    p = m.patterns
+    for name in ("dirs", "dir_weights", "n_dirs", "G", "CNT"):
+        arrays[f"patterns/{name}"] = getattr(p, name).copy()
+    return meta, arrays
+
+
+def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarray]) -> Mapper:
+    """A mapper in the state :func:`mapper_state` captured (settings must be the ones it ran with)."""
+    if meta.get("state_version") != STATE_VERSION:
+        raise ValueError(f"map state version {meta.get('state_version')} is not {STATE_VERSION}")
+    m = Mapper(settings, bound=np.asarray(meta["bound"], np.float64))
+    dev = m.device
+    t = lambda a: torch.from_numpy(np.asarray(a)).to(dev)  # noqa: E731
+    with torch.no_grad():
+        for name, g in {"geo": m.field.geo_grid, "tex": m.field.texture.grid}.items():
+            rows = t(arrays[f"grid/{name}/rows"]).long()
+            for part in ("table", "adam_m", "adam_v"):
+                getattr(g, part)[rows] = t(arrays[f"grid/{name}/{part}"])
+            g.adam_steps = int(meta["grid_steps"][name])
+        sd = {k[len("field/"):]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("field/")}
+        current = m.field.state_dict()
+        for k, v in sd.items():
+            if k not in current:
+                raise ValueError(f"checkpoint field entry {k!r} does not exist in this configuration")
+            if k.startswith("texture.") and k.split(".")[1] in ("centres", "weak", "n_dirs", "affine"):
+                setattr(m.field.texture, k.split(".")[1], v.to(dev))  # per-voxel warps: sized by the map
+                continue
+            if current[k].shape != v.shape:
+                raise ValueError(f"checkpoint field entry {k!r} has shape {tuple(v.shape)}, "
+                                 f"this configuration {tuple(current[k].shape)}")
+            current[k].copy_(v.to(dev))
+    state: dict = {}
+    for k, v in arrays.items():
+        if k.startswith("opt/"):
+            _, i, name = k.split("/")
+            vt = torch.from_numpy(np.array(v))
+            state.setdefault(int(i), {})[name] = vt if name != "step" else vt.to(torch.float32)
+    m.optimizer.load_state_dict({"state": state, "param_groups": meta["optimizer_groups"]})
+    m.generator.set_state(torch.from_numpy(arrays["torch_generator"]))
+    vx = m.voxels
+    vx.voxels = _restore_index(arrays["voxels/keys"])
+    vx.vertices = _restore_index(arrays["voxels/vertex_keys"])
+    vx.voxel_vertices = arrays["voxels/voxel_vertices"].astype(np.int64)
+    vx.priors = t(arrays["voxels/priors"]).float().requires_grad_(True)
+    vx.prior_set = arrays["voxels/prior_set"].astype(bool)
+    vx.refused = int(meta["voxels_refused"])
+    m.prior_opt.m, m.prior_opt.v = t(arrays["prior_opt/m"]).float(), t(arrays["prior_opt/v"]).float()
+    m.prior_opt.steps = int(meta["prior_steps"])
+    parts = {n: _split(arrays[f"kf/{n}"], arrays[f"kf/{n}_offsets"]) for n in ("voxels", "scores", "pix", "rgb", "depth")}
+    kfs = []
+    for i, km in enumerate(meta["keyframes"]):
+        payload = StoredFrame(parts["pix"][i], parts["rgb"][i], parts["depth"][i], np.asarray(km["pose"], np.float64),
+                              Intrinsics(**km["intrinsics"]))
+        kfs.append(Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i], payload, km["selected"]))
+    m.keyframes.keyframes = kfs
+    m.keyframes.observed = arrays["kf/observed"].astype(bool)
+    m.keyframes.frames_since_insert = int(meta["keyframe_policy"]["frames_since_insert"])
+    m.keyframes.pruned = int(meta["keyframe_policy"]["pruned"])
+    for name in ("dirs", "dir_weights", "n_dirs", "G", "CNT"):
+        setattr(m.patterns, name, arrays[f"patterns/{name}"].copy())
+    m.patterns.updates = int(meta["texture_updates"])
+    m.frames_mapped = int(meta["frames_mapped"])
+    m.dropped = dict(meta["dropped"])
+    m.last_timestamp = meta["last_timestamp"]
+    m.out_of_bound_points = int(meta["out_of_bound_points"])
+    m.rng.bit_generator.state = meta["rng"]
+    return m

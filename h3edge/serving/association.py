@@ -1,0 +1,65 @@
+"""Pose buffer: associates frames to poses by timestamp (SLERP rotation + linear translation).
+
+Poses arrive on their own key at their own rate and may come late, out of order or twice. The
+buffer keeps the most recent ``capacity`` poses sorted by time; :meth:`PoseBuffer.lookup` answers
+a frame timestamp with
+
+* ``("ok", pose)``: an exact match, or the interpolation between the poses just before and just
+  after it when they are at most ``max_gap`` apart;
+* ``("wait", None)``: no pose at or after the timestamp yet (the caller waits a little);
+* ``("miss", reason)``: the poses around it are too far apart, or it is older than the buffer.
+
+Thread-safe: the zenoh callback adds, the mapper thread looks up.
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+
+import numpy as np
+
+from h3edge.geometry.camera import rigid_error
+from h3edge.geometry.poses import interpolate_pose
+
+
+class PoseBuffer:
+    def __init__(self, capacity: int = 4096, max_gap_s: float = 0.1):
+        self.capacity = capacity
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self._t: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, timestamp_ns: int, pose: np.ndarray) -> str:
+        """Insert a pose; returns '' or why it was refused ('duplicate', 'bad_pose')."""
+        pose = np.asarray(pose, np.float64)
+        if rigid_error(pose):
+            return "bad_pose"
+        with self._lock:
+            i = bisect.bisect_left(self._t, timestamp_ns)
+            if i < len(self._t) and self._t[i] == timestamp_ns:
+                return "duplicate"
+            self._t.insert(i, timestamp_ns)
+            self._poses.insert(i, pose)
+            if len(self._t) > self.capacity:
+                del self._t[0], self._poses[0]
+        return ""
+
+    def lookup(self, timestamp_ns: int) -> tuple[str, object]:
+        with self._lock:
+            if not self._t or timestamp_ns > self._t[-1]:
+                return "wait", None
+            i = bisect.bisect_left(self._t, timestamp_ns)
+            if self._t[i] == timestamp_ns:
+                return "ok", self._poses[i].copy()
+            if i == 0:
+                return "miss", f"frame is older than every buffered pose ({(self._t[0] - timestamp_ns) / 1e6:.1f} ms)"
+            t0, t1 = self._t[i - 1], self._t[i]
+            a, b = self._poses[i - 1], self._poses[i]
+        if t1 - t0 > self.max_gap_ns:
+            return "miss", f"poses around the frame are {(t1 - t0) / 1e6:.1f} ms apart (max {self.max_gap_ns / 1e6:.1f})"
+        return "ok", interpolate_pose(a, b, (timestamp_ns - t0) / (t1 - t0))

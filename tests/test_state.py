@@ -1,0 +1,111 @@
+"""Mapper state round trip (what checkpoints hold), frozen query snapshots, keyframe pixel subsets."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.keyframes import KeyframeConfig
+from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.mapping.field import FieldConfig
+from h3edge.mapping.voxels import VoxelConfig
+
+SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
+                       voxels=VoxelConfig(min_points=3),
+                       field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14),
+                       keyframes=KeyframeConfig(stored_pixels=2000))
+
+
+@pytest.fixture(scope="module")
+def half_mapped(tiny_scene):
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(SETTINGS)
+    for f in list(seq)[:20]:
+        assert m.process(f).mapped
+    return seq, m
+
+
+def _params(m: Mapper) -> dict[str, torch.Tensor]:
+    out = {k: v.detach().clone() for k, v in m.field.state_dict().items()}
+    out["priors"] = m.voxels.priors.detach().clone()
+    return out
+
+
+def _clone(m: Mapper) -> Mapper:
+    """A deep copy of a mapper (the OpenCV line detector and numba kernels are not copyable)."""
+    det, kerns = m.patterns._detector, [(g, g._kern) for g in m.field.hash_grids()]
+    m.patterns._detector = None
+    for g, _ in kerns:
+        g._kern = None
+    try:
+        return copy.deepcopy(m)
+    finally:
+        m.patterns._detector = det
+        for g, k in kerns:
+            g._kern = k
+
+
+def test_keyframes_keep_a_pixel_subset(half_mapped):
+    _, m = half_mapped
+    kf = m.keyframes.keyframes[-1].payload
+    assert len(kf.pix) == 2000 and len(np.unique(kf.pix)) == 2000
+    assert kf.nbytes < 2000 * 12 + 200
+
+
+def test_restored_mapper_continues_identically(half_mapped):
+    """Restore from the captured state: identical parameters; mapping goes on from there."""
+    seq, m = half_mapped
+    meta, arrays = mapper_state(m)
+    # sparse tables: far fewer rows stored than the tables hold
+    assert len(arrays["grid/geo/rows"]) < len(m.field.geo_grid.table)
+    r = restore_mapper(SETTINGS, meta, arrays)
+    a, b = _params(m), _params(r)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert r.frames_mapped == m.frames_mapped and len(r.voxels) == len(m.voxels)
+    assert [k.frame_id for k in r.keyframes.keyframes] == [k.frame_id for k in m.keyframes.keyframes]
+    # continue mapping from the restored state and from the original: the same map (the parallel
+    # gradient scatter sums in a nondeterministic order, so "the same" is up to rounding noise)
+    cont = _clone(m)
+    for f in list(seq)[20:26]:
+        assert r.process(f).mapped and cont.process(f).mapped
+    held = seq.heldout[2]
+    (_, d_r), (_, d_c) = r.render(held.intrinsics, held.pose), cont.render(held.intrinsics, held.pose)
+    both = (d_r > 0) & (d_c > 0) & (held.depth > 0)
+    assert both.mean() > 0.8
+    assert np.median(np.abs(d_r[both] - d_c[both])) < 0.002
+    assert np.median(np.abs(d_r[both] - held.depth[both])) < 0.02
+    assert r.frames_mapped == 26 and not torch.equal(_params(r)["geo_grid.table"], b["geo_grid.table"])
+
+
+def test_restore_refuses_other_configuration(half_mapped):
+    _, m = half_mapped
+    meta, arrays = mapper_state(m)
+    other = dataclasses.replace(SETTINGS, field=dataclasses.replace(SETTINGS.field, sdf_hidden=32))
+    with pytest.raises(ValueError, match="shape"):
+        restore_mapper(other, meta, arrays)
+
+
+def test_frozen_view_is_independent(half_mapped):
+    seq, m = half_mapped
+    frozen = m.view().frozen()
+    f = seq[5]
+    before = frozen.render(f.intrinsics, f.pose)
+    live_before = m.render(f.intrinsics, f.pose)
+    assert np.array_equal(before[1], live_before[1])
+    table = frozen.field.geo_grid.table.clone()
+    scratch = _clone(m)  # train a copy, so the module fixture stays as it was
+    snap = scratch.view().frozen()
+    for fr in list(seq)[20:23]:
+        scratch.process(fr)
+    assert torch.equal(snap.field.geo_grid.table, table)  # the snapshot did not see training
+    assert not torch.equal(scratch.field.geo_grid.table, table)
+    assert snap.field.geo_grid.adam_m.numel() == 0  # no optimiser state copied
+    mesh = frozen.mesh(resolution=2)
+    assert len(mesh.faces) > 100
