@@ -4,7 +4,12 @@
     h3edge sim sheet SEQUENCE OUT.png [--frames N]
     h3edge eval SEQUENCE [--mesh MESH.ply] [--json OUT.json]
     h3edge map SEQUENCE --out DIR [--profile P --frames N --stride S --device D --no-eval]
-    h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job: make, map, evaluate
+    h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job: the whole system on loopback
+    h3edge serve --profile P [--zenoh-config F] [--map-id ID] [--state-dir DIR] [--resume]
+    h3edge sim publish SEQUENCE --rate HZ [--pose-rate HZ --jitter MS --frames N --embed-pose]
+    h3edge query status|profile|mesh|render|save [--out FILE] [...]
+Every zenoh-speaking command takes --zenoh-config FILE, --map-id ID and the endpoint overrides
+--mode, --connect EP, --listen EP, --no-multicast.
 """
 
 from __future__ import annotations
@@ -92,17 +97,130 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    """Make (or reuse) the bundled simulated scene, map it, evaluate, print metrics and timings."""
+    """Make (or reuse) the bundled simulated scene; serve, stream, query, evaluate, print, stop."""
     from h3edge.config import load_profile
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.mapping.offline import run_offline
     from h3edge.sim.make import PRESETS, ensure_scene
 
     out = Path(args.out)
     scene = ensure_scene(out / f"scene_{args.preset}", PRESETS[args.preset])
-    run = run_offline(ReplicaSequence(scene), load_profile(args.profile), out / "map")
-    _print_run(run, out / "map")
+    if args.offline:
+        from h3edge.mapping.offline import run_offline
+
+        run = run_offline(ReplicaSequence(scene), load_profile(args.profile), out / "map")
+        _print_run(run, out / "map")
+        return 0
+    from h3edge.serving.demo import run_demo
+
+    return run_demo(ReplicaSequence(scene), args.profile, out / "live", rate=args.rate)
+
+
+def _zenoh_conf(args: argparse.Namespace):
+    from h3edge.serving.transport import zenoh_config
+
+    return zenoh_config(args.zenoh_config, args.mode, args.connect, args.listen,
+                        False if args.no_multicast else None)
+
+
+def _profile_with_overrides(args: argparse.Namespace):
+    from h3edge.config import load_profile
+
+    profile = load_profile(args.profile)
+    svc = {k: v for k, v in (("map_id", args.map_id), ("state_dir", args.state_dir)) if v}
+    if svc:
+        profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, **svc))
+    if getattr(args, "device", None):
+        profile = dataclasses.replace(profile, mapper=dataclasses.replace(profile.mapper, device=args.device))
+    return profile
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from h3edge.serving.daemon import serve
+
+    return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume)
+
+
+def _cmd_sim_publish(args: argparse.Namespace) -> int:
+    from h3edge.io import open_sequence
+    from h3edge.serving.transport import Keys, open_session, publish_sequence
+
+    seq = open_sequence(args.sequence)
+    with open_session(_zenoh_conf(args)) as session:
+        sent = publish_sequence(session, seq, Keys.for_map(args.map_id or "default"), args.rate, args.pose_rate,
+                                args.jitter, args.frames, args.stride, args.embed_pose)
+    print(f"published {sent['frames']} frames and {sent['poses']} poses")
     return 0
+
+
+def _parse_floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        raise SystemExit(f"error: {what} must be {n} numbers") from None
+    if len(v) != n:
+        raise SystemExit(f"error: {what} must be {n} numbers, got {len(v)}")
+    return v
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from h3edge.geometry.camera import look_at
+    from h3edge.io.protocol import pose_to_json
+    from h3edge.serving.service import write_render
+    from h3edge.serving.transport import Keys, RemoteError, open_session, query
+
+    keys = Keys.for_map(args.map_id or "default")
+    payload = None
+    if args.what == "mesh":
+        payload = {"format": args.format}
+        if args.resolution:
+            payload["resolution"] = args.resolution
+        if args.aabb:
+            v = _parse_floats(args.aabb, 6, "--aabb")
+            payload["aabb"] = [v[:3], v[3:]]
+    elif args.what == "render":
+        if args.pose:
+            v = _parse_floats(args.pose, 7, "--pose (tx ty tz qx qy qz qw)")
+            pose = {"t": v[:3], "q": v[3:]}
+        elif args.look_at:
+            v = _parse_floats(args.look_at, 6, "--look-at (eye xyz, target xyz)")
+            pose = pose_to_json(look_at(np.array(v[:3]), np.array(v[3:])))
+        else:
+            raise SystemExit("error: render needs --pose or --look-at")
+        payload = {"pose": pose, "width": args.width, "height": args.height, "fov_deg": args.fov}
+    with open_session(_zenoh_conf(args)) as session:
+        try:
+            data = query(session, getattr(keys, args.what), payload, timeout=args.timeout)
+        except RemoteError as e:
+            print(f"error from the service: {e}", file=sys.stderr)
+            return 1
+        except TimeoutError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+    if args.what == "render":
+        if not args.out:
+            raise SystemExit("error: render needs --out PREFIX")
+        c, d = write_render(data, Path(args.out))
+        print(f"wrote {c} and {d}")
+    elif args.out:
+        Path(args.out).write_bytes(data)
+        print(f"wrote {args.out} ({len(data)} bytes)")
+    elif args.what == "profile":
+        print(json.loads(data)["table"])
+    else:
+        print(data.decode())
+    return 0
+
+
+def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--zenoh-config", help="zenoh JSON5 config file (default: zenoh's defaults, peer mode)")
+    g.add_argument("--map-id", help="map id: keys live under h3edge/<map-id>/ (default: the profile's)")
+    g.add_argument("--mode", choices=["peer", "client"], help="override the config's mode")
+    g.add_argument("--connect", action="append", help="endpoint to connect to, e.g. tcp/192.168.1.10:7447")
+    g.add_argument("--listen", action="append", help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
+    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,6 +244,16 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("out")
     sh.add_argument("--frames", type=int, default=12)
     sh.set_defaults(func=_cmd_sim_sheet)
+    pb = sim.add_parser("publish", help="stream a sequence over zenoh as a robot would (frames + poses)")
+    pb.add_argument("sequence")
+    pb.add_argument("--rate", type=float, default=30.0, help="frames per second")
+    pb.add_argument("--pose-rate", type=float, help="poses per second on the pose key (default: 30)")
+    pb.add_argument("--jitter", type=float, default=0.0, help="send each message up to this many ms late")
+    pb.add_argument("--frames", type=int, help="publish only the first N (strided) frames")
+    pb.add_argument("--stride", type=int, default=1)
+    pb.add_argument("--embed-pose", action="store_true", help="put the pose inside each frame message instead")
+    _add_zenoh_args(pb)
+    pb.set_defaults(func=_cmd_sim_publish)
 
     ev = sub.add_parser("eval", help="evaluate a mesh against a sequence (Acc/Comp, Depth L1, PSNR, SSIM)")
     ev.add_argument("sequence")
@@ -146,11 +274,36 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--no-eval", action="store_true", help="skip evaluation")
     mp.set_defaults(func=_cmd_map)
 
-    demo = sub.add_parser("demo", help="make the bundled simulated scene, map it, evaluate (README's main job)")
+    demo = sub.add_parser("demo", help="the whole system on loopback: service, publisher, queries, metrics")
     demo.add_argument("--out", default="out/demo")
     demo.add_argument("--preset", choices=["default", "tiny"], default="default")
     demo.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
+    demo.add_argument("--rate", type=float, default=2.0, help="frames per second the publisher streams")
+    demo.add_argument("--offline", action="store_true", help="map in-process without zenoh (the old demo)")
     demo.set_defaults(func=_cmd_demo)
+
+    sv = sub.add_parser("serve", help="run the mapping service (zenoh ingest, queries, checkpoints)")
+    sv.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
+    sv.add_argument("--state-dir", help="checkpoint directory (default: the profile's; StateDirectory under systemd)")
+    sv.add_argument("--resume", action="store_true", help="restore the map from its checkpoint and go on")
+    sv.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
+    _add_zenoh_args(sv)
+    sv.set_defaults(func=_cmd_serve)
+
+    q = sub.add_parser("query", help="ask a running service for status, profile, mesh, render or a checkpoint")
+    q.add_argument("what", choices=["status", "profile", "mesh", "render", "save"])
+    q.add_argument("--out", help="write the reply here (mesh file; render: PREFIX_color.png + PREFIX_depth.png)")
+    q.add_argument("--format", default="ply", choices=["ply", "glb", "obj"], help="mesh format")
+    q.add_argument("--resolution", type=int, help="mesh: marching-cubes cells per voxel edge")
+    q.add_argument("--aabb", help="mesh: xmin,ymin,zmin,xmax,ymax,zmax")
+    q.add_argument("--pose", help="render: tx,ty,tz,qx,qy,qz,qw (camera-to-world, OpenCV axes)")
+    q.add_argument("--look-at", help="render: ex,ey,ez,tx,ty,tz (camera at e looking at t, z up)")
+    q.add_argument("--width", type=int, default=320)
+    q.add_argument("--height", type=int, default=240)
+    q.add_argument("--fov", type=float, default=80.0, help="render: horizontal field of view [deg]")
+    q.add_argument("--timeout", type=float, default=60.0)
+    _add_zenoh_args(q)
+    q.set_defaults(func=_cmd_query)
     return p
 
 
@@ -160,10 +313,11 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from h3edge.config import ProfileError
     from h3edge.io.sequence import DatasetError
+    from h3edge.serving.checkpoint import CheckpointError
 
     try:
         return args.func(args)
-    except (DatasetError, ProfileError) as e:
+    except (DatasetError, ProfileError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 

@@ -9,6 +9,9 @@ state persists across iterations; once every voxel is observed it resets, and wi
 pruning the keyframes not selected during that round are removed. Each keyframe carries a score
 per observed voxel: 1 everywhere gives H2-Mapping's voxel-count coverage; H3's gradient-aided
 score max(cnt^2 * g, 1) plugs in through the same array.
+
+A memory cap (``max_keyframes``, set by the service from its byte budget) bounds the set: past it,
+the keyframe with the smallest total score (the least coverage it can add) is evicted.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ class KeyframeConfig:
     adaptive_pruning: bool = True
     gradient_aided: bool = True  # H3's voxel score max(cnt^2 g, 1); False: H2's voxel count
     stored_pixels: int = 0  # valid pixels a keyframe keeps for ray sampling (0: all of them)
+    max_keyframes: int = 0  # cap (0: none); past it the least informative keyframe is evicted
 
 
 @dataclass
@@ -44,6 +48,7 @@ class KeyframeSet:
     observed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     frames_since_insert: int = 0
     pruned: int = 0
+    evicted: int = 0
 
     def should_insert(self, voxels: np.ndarray) -> bool:
         """Insertion rule for a frame observing ``voxels`` (unique ids); counts the interval."""
@@ -62,6 +67,12 @@ class KeyframeSet:
             raise ValueError("one score per voxel")
         self.keyframes.append(Keyframe(frame_id, voxels, scores, payload))
         self.frames_since_insert = 0
+        cap = self.cfg.max_keyframes
+        while cap and len(self.keyframes) > max(cap, 2):
+            # evict the keyframe with the smallest total score (never the newest: insertion compares to it)
+            worst = int(np.argmin([k.scores.sum() for k in self.keyframes[:-1]]))
+            del self.keyframes[worst]
+            self.evicted += 1
 
     def _grow(self, n_voxels: int) -> None:
         if len(self.observed) < n_voxels:

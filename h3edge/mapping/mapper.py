@@ -307,6 +307,7 @@ class Mapper:
         return {"frames_mapped": self.frames_mapped, "dropped": dict(self.dropped), "voxels": len(self.voxels),
                 "voxels_refused": self.voxels.refused, "vertices": len(self.voxels.vertex_keys),
                 "keyframes": len(self.keyframes.keyframes), "keyframes_pruned": self.keyframes.pruned,
+                "keyframes_evicted": self.keyframes.evicted,
                 "out_of_bound_points": self.out_of_bound_points, "device": str(self.device),
                 "texture_classes": self.patterns.counts(len(self.voxels)) if self.settings.texture.quasi_heterogeneous else {},
                 "memory_bytes": {"keyframes": kf_bytes, "hash_grids_with_adam": grids,

@@ -9,6 +9,7 @@ names used by the mapper, in the paper's order: ``read`` (data reading & preproc
 
 from __future__ import annotations
 
+import collections
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -24,10 +25,21 @@ LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
 
 @dataclass
 class Timings:
-    samples: dict[str, list[float]] = field(default_factory=dict)  # seconds
+    """Durations per component: the last ``window`` of each for median / p95, all of them in
+    count / total (a long-running service keeps bounded memory)."""
+
+    window: int = 10_000
+    samples: dict[str, collections.deque] = field(default_factory=dict)  # seconds
+    counts: dict[str, int] = field(default_factory=dict)
+    totals: dict[str, float] = field(default_factory=dict)
 
     def add(self, name: str, seconds: float) -> None:
-        self.samples.setdefault(name, []).append(float(seconds))
+        if name not in self.samples:
+            self.samples[name] = collections.deque(maxlen=self.window)
+            self.counts[name], self.totals[name] = 0, 0.0
+        self.samples[name].append(float(seconds))
+        self.counts[name] += 1
+        self.totals[name] += float(seconds)
 
     @contextmanager
     def time(self, name: str):
@@ -39,10 +51,13 @@ class Timings:
 
     def summary(self) -> dict[str, dict[str, float]]:
         out = {}
-        for name, v in self.samples.items():
-            a = 1000 * np.asarray(v)
+        for name, v in list(self.samples.items()):  # may be called from another thread than add()
+            a = 1000 * np.asarray(list(v))
+            if len(a) == 0:
+                continue
+            count, total = self.counts.get(name, len(a)), self.totals.get(name, a.sum() / 1000)
             out[name] = {"median_ms": float(np.median(a)), "p95_ms": float(np.percentile(a, 95)),
-                         "mean_ms": float(a.mean()), "total_s": float(a.sum() / 1000), "count": len(a)}
+                         "mean_ms": float(1000 * total / max(count, 1)), "total_s": float(total), "count": count}
         return out
 
 

@@ -1,0 +1,106 @@
+"""Fused numba kernels of the renderer's prior march (see :mod:`h3edge.mapping.render`).
+
+Module-level so numba's on-disk cache is reused across processes (a closure recompiled, ~10 s,
+in every process: the first render of a service would have paid it).
+"""
+
+import math
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(inline="always")
+def trilinear(px, py, pz, grid, g0, vv, priors):
+    """(voxel id or -1, trilinear prior) at a point in voxel units, through the dense id grid."""
+    nx, ny, nz = grid.shape
+    fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+    ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
+    if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+        return -1, 0.0
+    vid = grid[ix, iy, iz]
+    if vid < 0:
+        return -1, 0.0
+    ux, uy, uz = px - fx, py - fy, pz - fz
+    s = 0.0
+    for c in range(8):
+        w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * (uz if (c >> 2) & 1 else 1.0 - uz)
+        s += w * priors[vv[vid, c]]
+    return vid, s
+
+@nb.njit(inline="always")
+def face(o, dirs, r, t_in, s_in, t_out, grid, g0, vs, vv, priors):
+    """Bisect between an allocated sample (t_in, prior s_in) and an unallocated one (t_out):
+    the allocated point nearest the region's face and its prior (t_in, s_in if none is nearer)."""
+    a, b = t_in, t_out
+    for _ in range(8):
+        mid = 0.5 * (a + b)
+        v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
+                                 (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
+        if v_mid < 0:
+            b = mid
+        else:
+            a, t_in, s_in = mid, mid, s_mid
+    return t_in, s_in
+
+@nb.njit(parallel=True, fastmath=False, cache=True)
+def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
+    nx, ny, nz = grid.shape
+    lo = (g0[0] * vs, g0[1] * vs, g0[2] * vs)
+    hi = ((g0[0] + nx) * vs, (g0[1] + ny) * vs, (g0[2] + nz) * vs)
+    for r in nb.prange(dirs.shape[0]):
+        out[r] = -1.0
+        t0, t1 = nears[r], far
+        for a in range(3):
+            d = dirs[r, a]
+            if abs(d) < 1e-12:
+                if o[a] < lo[a] or o[a] > hi[a]:
+                    t0, t1 = 1.0, 0.0
+                continue
+            ta, tb = (lo[a] - o[a]) / d, (hi[a] - o[a]) / d
+            if ta > tb:
+                ta, tb = tb, ta
+            t0, t1 = max(t0, ta), min(t1, tb)
+        if t0 >= t1:
+            continue
+        prev = math.nan
+        prev_t = 0.0
+        t = t0
+        while t <= t1:
+            vid, s = trilinear((o[0] + dirs[r, 0] * t) / vs, (o[1] + dirs[r, 1] * t) / vs,
+                               (o[2] + dirs[r, 2] * t) / vs, grid, g0, vv, priors)
+            if vid < 0:
+                if prev > 0.0:
+                    # leaving the allocated region while the prior is still positive: find the
+                    # exit point (bisection); the surface may lie in the last sliver before it
+                    a_, s_in = face(o, dirs, r, prev_t, prev, t, grid, g0, vs, vv, priors)
+                    if s_in <= 0.0:
+                        out[r] = prev_t + (a_ - prev_t) * prev / (prev - s_in)
+                        break
+                    if s_in < exit_tol and s_in < prev and a_ > prev_t:
+                        # just short of zero at the region's back face: extrapolate a little
+                        out[r] = min(a_ + (a_ - prev_t) * s_in / (prev - s_in), a_ + step)
+                        break
+                prev = math.nan
+                t += step
+                continue
+            if prev != prev and t > t0:
+                # just entered the allocated region: find the entry point (bisection) and use
+                # the prior there, so a surface just inside the region's face is not stepped over
+                prev_t, prev = face(o, dirs, r, t, s, t - step, grid, g0, vs, vv, priors)
+                if prev_t < t and -exit_tol < prev <= 0.0:
+                    # entering just behind the surface: it lies at the region's front face
+                    out[r] = prev_t
+                    break
+            if prev > 0.0 and s <= 0.0:
+                out[r] = prev_t + (t - prev_t) * prev / (prev - s)
+                break
+            prev, prev_t = s, t
+            t += step
+    return out
+
+@nb.njit(parallel=True, cache=True)
+def prior_at(pts, grid, g0, vs, vv, priors, sdf, vox):
+    for i in nb.prange(pts.shape[0]):
+        vox[i], sdf[i] = trilinear(pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs, grid, g0, vv, priors)
+

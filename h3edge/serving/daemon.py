@@ -1,0 +1,67 @@
+"""The ``h3edge serve`` process: a :class:`MapService` behind zenoh, with signals and systemd.
+
+Start-up: load (or resume) the map, open the zenoh session, declare keys, start the mapper
+thread, then tell systemd READY=1. While running, WATCHDOG=1 goes out only while the mapper
+thread's heartbeat is fresh (a wedged mapper stops the pings and systemd restarts the service).
+SIGTERM / SIGINT: STOPPING=1, stop ingest, finish the frame in progress, write a final checkpoint,
+close the session, exit 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+
+from h3edge.config import Profile
+from h3edge.serving.service import MapService
+from h3edge.serving.systemd import Notifier
+from h3edge.serving.transport import ZenohServer, open_session
+
+log = logging.getLogger(__name__)
+
+
+def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event | None = None,
+          notifier: Notifier | None = None) -> int:
+    stop = stop or threading.Event()
+    notifier = notifier or Notifier()
+    cfg = profile.service
+    service = MapService(profile.map_settings(), cfg, profile.name, resume=resume)
+
+    def on_signal(signum, _frame) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+    session = open_session(zconf)
+    server = ZenohServer(service, session, cfg.map_id)
+    try:
+        server.start()
+        service.start()
+        notifier.ready(f"mapping {cfg.map_id}")
+        log.info("h3edge serving map %r (profile %s, device %s, state %s)", cfg.map_id, profile.name,
+                 service.mapper.device, service.checkpoint_path)
+        ping = notifier.watchdog_interval()
+        last_status = 0.0
+        while not stop.wait(min(ping or 1.0, 1.0)):
+            now = time.monotonic()
+            if not service.alive:
+                log.error("mapper thread died: exiting for a restart")
+                return 1
+            if ping and now - service.heartbeat < 2 * ping:
+                notifier.watchdog()
+            if now - last_status > 10:
+                s = service.status()
+                notifier.status(f"{s['frames']['mapped']} frames mapped, {s['frames']['dropped']} dropped, "
+                                f"{s['map']['voxels']} voxels")
+                last_status = now
+        notifier.stopping()
+        return 0
+    finally:
+        server.close()
+        service.stop(checkpoint=True)
+        session.close()
+        log.info("h3edge stopped")

@@ -1,0 +1,466 @@
+"""The map service core, transport-free: ingest, the mapper thread, queries, checkpoints, status.
+
+Data path: the transport hands raw frame and pose messages to :meth:`MapService.submit_frame` /
+:meth:`MapService.submit_pose`, which never block: a frame goes into a bounded ingest queue
+(``ingest_queue`` deep; when full the *oldest* waiting frame is dropped and counted
+``queue_full``, so the mapper always works on recent frames and memory stays bounded), a pose is
+parsed and put in the :class:`PoseBuffer`. The mapper thread takes the oldest queued frame,
+decodes it (``malformed`` when the protocol is broken), finds its pose (its own, or interpolated
+from the pose stream; it waits up to ``pose_wait_s`` for a pose after its timestamp, then drops it
+as ``no_pose``), and maps it (the mapper's own drop codes: ``bad_pose``, ``stale_timestamp``,
+``no_depth``, ...). A bad message never touches the map.
+
+Queries (mesh, render) run on the caller's thread against a frozen copy of the map that the
+mapper thread makes between two training steps (so a query waits at most one training
+iteration for it, and mapping is held up only for the copy, tens of ms); a copy younger than
+``snapshot_max_age_s`` is reused. Status reads counters the mapper thread publishes after each
+frame (no lock, no wait).
+
+Checkpoints: every ``checkpoint_interval_s``, on ``save`` and on stop. The mapper thread captures
+the state between frames; a writer thread writes it atomically (:mod:`h3edge.serving.checkpoint`).
+
+Memory budget: ``memory_budget_mb`` is split up front (:func:`memory_plan`): hash tables and their
+optimiser state, the voxel map at its cap, a reserve for query snapshots, and what is left for
+keyframes, which sets the keyframe cap (keyframes hold a random subset of their pixels).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from h3edge.geometry.camera import Intrinsics
+from h3edge.io.protocol import FrameMessage, ProtocolError, decode_frame, decode_pose, encode_frame, pose_from_json
+from h3edge.io.sequence import Frame
+from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.snapshot import MapView
+from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.serving.association import PoseBuffer
+from h3edge.serving.checkpoint import CHECKPOINT_NAME, CheckpointError, read_checkpoint, write_checkpoint
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    map_id: str = "default"
+    state_dir: str = "/var/lib/h3edge"  # checkpoints (systemd's StateDirectory)
+    checkpoint_interval_s: float = 60.0  # 0: only on save and on stop
+    ingest_queue: int = 2  # frames waiting for the mapper; when full the oldest is dropped
+    pose_wait_s: float = 0.3  # how long a frame waits for a pose after its timestamp
+    pose_max_gap_s: float = 0.1  # interpolate only between poses at most this far apart
+    pose_buffer: int = 4096  # poses kept for association
+    memory_budget_mb: int = 2048  # the map's memory (tables, voxels, keyframes, query snapshots)
+    snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
+    max_render_pixels: int = 1280 * 960  # render requests above this are refused
+    max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
+    query_timeout_s: float = 60.0
+
+
+class QueryError(ValueError):
+    """A query the service refuses or cannot answer; the message goes back to the client."""
+
+
+# ------------------------------------------------------------------------------ memory plan
+def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int) -> dict:
+    """Split the byte budget: fixed parts first, keyframes get what is left (at least 8)."""
+    f = settings.field
+    tables = 0
+    for log2, levels, feats in ((f.geo_log2_table, f.geo_levels, f.geo_features),
+                                (f.tex_log2_table, f.tex_levels, f.tex_features)):
+        rows = levels * (1 << log2)
+        tables += rows * feats * 4 * 4 + rows  # table, Adam m, v, gradient scratch; touched flags
+    per_voxel = 360  # keys + index + 8 vertex ids + ~1.5 vertices (key, prior, Adam) + texture state + warps
+    voxels = settings.voxels.max_voxels * per_voxel
+    snapshot = tables // 4 + voxels // 2  # a query's frozen copy: the tables and the voxel map
+    budget = int(budget_mb) << 20
+    left = budget - tables - voxels - snapshot
+    cap = max(8, left // max(1, keyframe_bytes))
+    return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
+            "keyframes": max(0, left), "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap),
+            "fits": left >= 8 * keyframe_bytes}
+
+
+def keyframe_bytes(settings: MapSettings, width: int = 640, height: int = 480) -> int:
+    n = settings.keyframes.stored_pixels or width * height
+    return n * (4 + 3 + 4) + 4096  # pixel index, RGB, depth; voxel ids and scores
+
+
+# --------------------------------------------------------------------------------- service
+@dataclass
+class _Pending:
+    data: bytes
+    received: float  # time.monotonic()
+
+
+class MapService:
+    def __init__(self, settings: MapSettings, cfg: ServiceConfig = ServiceConfig(), profile_name: str = "",
+                 resume: bool = False):
+        self.settings, self.cfg, self.profile_name = settings, cfg, profile_name
+        self.plan = memory_plan(settings, cfg.memory_budget_mb, keyframe_bytes(settings))
+        if not self.plan["fits"]:
+            log.warning("memory budget %d MB leaves little for keyframes: %s", cfg.memory_budget_mb, self.plan)
+        kf = dataclasses.replace(settings.keyframes, max_keyframes=min(
+            settings.keyframes.max_keyframes or 1 << 30, self.plan["max_keyframes"]))
+        self.settings = dataclasses.replace(settings, keyframes=kf)
+        self.state_dir = Path(cfg.state_dir)
+        self.checkpoint_path = self.state_dir / cfg.map_id / CHECKPOINT_NAME
+        self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s)
+        self.mapper = Mapper(self.settings)
+        self.resumed_from: dict | None = None
+        if resume:
+            self._resume()
+        self.mapper.step_hook = self._serve_requests
+        self._queue: collections.deque[_Pending] = collections.deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._writer: threading.Thread | None = None
+        self._view_requests: list[Future] = []
+        self._save_requests: list[Future] = []
+        self._req_lock = threading.Lock()
+        self._view: MapView | None = None
+        self._view_time = 0.0
+        self._counts = collections.Counter()  # service-level counters
+        self._drops = collections.Counter()  # service-level drop reasons
+        self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
+        self._recent_received: collections.deque[float] = collections.deque(maxlen=300)
+        self._delays: collections.deque[float] = collections.deque(maxlen=300)
+        self.last_error: dict | None = None
+        self.last_checkpoint: dict | None = None
+        self._last_ckpt_time = time.monotonic()
+        self.heartbeat = time.monotonic()
+        self.started = time.time()
+        self._stats = self._collect_stats()
+
+    # ---------------------------------------------------------------- lifecycle
+    def _resume(self) -> None:
+        if not self.checkpoint_path.exists():
+            log.info("no checkpoint at %s: starting a new map", self.checkpoint_path)
+            return
+        try:
+            header, arrays = read_checkpoint(self.checkpoint_path)
+            if header.get("map_id") != self.cfg.map_id:
+                raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.cfg.map_id!r}")
+            self.mapper = restore_mapper(self.settings, header["state"], arrays)
+        except (CheckpointError, ValueError, KeyError) as e:
+            raise CheckpointError(f"cannot resume from {self.checkpoint_path}: {e}") from None
+        self.resumed_from = {"path": str(self.checkpoint_path), "frames_mapped": header["frames_mapped"],
+                             "created_unix": header["created_unix"]}
+        log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.cfg.map_id,
+                 self.checkpoint_path, self.mapper.frames_mapped, len(self.mapper.voxels),
+                 len(self.mapper.keyframes.keyframes))
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="h3edge-mapper", daemon=True)
+        self._thread.start()
+
+    def stop(self, checkpoint: bool = True, timeout: float = 60.0) -> None:
+        """Stop mapping (the frame in progress finishes), write a final checkpoint."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self._writer is not None:
+            self._writer.join(timeout)
+        if checkpoint and self.mapper.field is not None:
+            self._write(*self._capture())
+        for fut in self._view_requests + self._save_requests:
+            if not fut.done():
+                fut.set_exception(QueryError("service stopping"))
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # ------------------------------------------------------------------ ingest
+    def submit_frame(self, data: bytes) -> None:
+        """Queue a raw frame message (called from the transport's thread; never blocks)."""
+        now = time.monotonic()
+        with self._cond:
+            self._counts["frames_received"] += 1
+            self._recent_received.append(now)
+            if len(self._queue) >= self.cfg.ingest_queue:
+                self._queue.popleft()
+                self._drops["queue_full"] += 1
+            self._queue.append(_Pending(bytes(data), now))
+            self._cond.notify()
+
+    def submit_pose(self, data: bytes) -> None:
+        self._counts["poses_received"] += 1
+        try:
+            msg = decode_pose(data)
+        except ProtocolError as e:
+            self._pose_drop("malformed_pose", str(e))
+            return
+        why = self.poses.add(msg.timestamp_ns, msg.pose)
+        if why:
+            self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {msg.timestamp_ns} ns: {why}")
+
+    def _pose_drop(self, code: str, text: str) -> None:
+        self._drops[code] += 1
+        self._error(code, text)
+
+    def _error(self, code: str, text: str) -> None:
+        self.last_error = {"code": code, "message": text, "unix": time.time()}
+        log.warning("%s: %s", code, text)
+
+    # ------------------------------------------------------------ mapper thread
+    def _run(self) -> None:
+        log.info("mapper thread up (%s, map %r)", self.mapper.device, self.cfg.map_id)
+        while not self._stop.is_set():
+            self.heartbeat = time.monotonic()
+            self._serve_requests()
+            with self._cond:
+                if not self._queue:
+                    self._cond.wait(0.05)
+                item = self._queue.popleft() if self._queue else None
+            if item is not None:
+                try:
+                    self._handle(item)
+                except Exception as e:  # a bug must not take the service down: log, count, go on
+                    log.exception("frame failed")
+                    self._drops["internal_error"] += 1
+                    self._error("internal_error", f"{type(e).__name__}: {e}")
+                self._stats = self._collect_stats()
+            interval = self.cfg.checkpoint_interval_s
+            if interval > 0 and time.monotonic() - self._last_ckpt_time > interval and self.mapper.field is not None \
+                    and self.mapper.frames_mapped > (self.last_checkpoint or {}).get("frames_mapped", 0):
+                self._checkpoint_async()
+        self._serve_requests()
+        log.info("mapper thread stopped")
+
+    def _handle(self, item: _Pending) -> None:
+        t0 = time.perf_counter()
+        try:
+            msg = decode_frame(item.data)
+        except ProtocolError as e:
+            self._drops["malformed"] += 1
+            self._error("malformed", str(e))
+            return
+        pose = msg.pose
+        if pose is None:
+            while True:
+                state, value = self.poses.lookup(msg.timestamp_ns)
+                if state == "ok":
+                    pose = value
+                    break
+                if state == "miss" or time.monotonic() - item.received > self.cfg.pose_wait_s or self._stop.is_set():
+                    self._drops["no_pose"] += 1
+                    self._error("no_pose", f"frame {msg.frame_id}: " + (value or "no pose arrived in time"))
+                    return
+                self._serve_requests()
+                time.sleep(0.005)
+        frame = Frame(msg.frame_id, msg.timestamp, msg.color, msg.depth, pose, msg.intrinsics)
+        result = self.mapper.process(frame, read_seconds=time.perf_counter() - t0)
+        if result.mapped:
+            now = time.monotonic()
+            self._recent_mapped.append(now)
+            self._delays.append(now - item.received)
+        else:
+            self._error("dropped", f"frame {msg.frame_id}: {result.reason}")
+
+    # ----------------------------------------------------------- snapshot / save
+    def _serve_requests(self) -> None:
+        """On the mapper thread, between training steps: hand out map copies, capture saves."""
+        self.heartbeat = time.monotonic()
+        with self._req_lock:
+            views, self._view_requests = self._view_requests, []
+            saves, self._save_requests = self._save_requests, []
+        if views:
+            try:
+                if self.mapper.field is None:
+                    raise QueryError("nothing mapped yet")
+                view = self.mapper.view().frozen()
+                self._view, self._view_time = view, time.monotonic()
+                for f in views:
+                    f.set_result(view)
+            except Exception as e:
+                for f in views:
+                    f.set_exception(e if isinstance(e, QueryError) else QueryError(f"snapshot failed: {e}"))
+        if saves:
+            if self.mapper.field is None:
+                for f in saves:
+                    f.set_exception(QueryError("nothing mapped yet"))
+            else:
+                self._checkpoint_async(saves)
+
+    def view(self) -> MapView:
+        """A frozen copy of the map, at most ``snapshot_max_age_s`` old."""
+        if self._view is not None and time.monotonic() - self._view_time < self.cfg.snapshot_max_age_s:
+            return self._view
+        fut: Future = Future()
+        with self._req_lock:
+            self._view_requests.append(fut)
+        with self._cond:
+            self._cond.notify()
+        if not self.alive:
+            self._serve_requests()  # no mapper thread (not started or stopped): copy here
+        return fut.result(self.cfg.query_timeout_s)
+
+    def save(self) -> dict:
+        fut: Future = Future()
+        with self._req_lock:
+            self._save_requests.append(fut)
+        with self._cond:
+            self._cond.notify()
+        if not self.alive:
+            self._serve_requests()
+        return fut.result(self.cfg.query_timeout_s)
+
+    def _capture(self) -> tuple[dict, dict]:
+        meta, arrays = mapper_state(self.mapper)
+        header = {"map_id": self.cfg.map_id, "profile": self.profile_name, "frames_mapped": self.mapper.frames_mapped,
+                  "settings": dataclasses.asdict(self.settings), "state": meta}
+        return header, arrays
+
+    def _write(self, header: dict, arrays: dict, futures: list[Future] | None = None) -> None:
+        t0 = time.perf_counter()
+        try:
+            size = write_checkpoint(self.checkpoint_path, json.loads(json.dumps(header, default=str)), arrays)
+            info = {"path": str(self.checkpoint_path), "frames_mapped": header["frames_mapped"], "bytes": size,
+                    "seconds": round(time.perf_counter() - t0, 3), "unix": time.time()}
+            self.last_checkpoint = info
+            self.mapper.timings.add("checkpoint", time.perf_counter() - t0)
+            log.info("checkpoint: %d frames, %.1f MB in %.2f s -> %s", info["frames_mapped"], size / 1e6,
+                     info["seconds"], self.checkpoint_path)
+            for f in futures or []:
+                f.set_result(info)
+        except Exception as e:
+            self._error("checkpoint", f"{type(e).__name__}: {e}")
+            for f in futures or []:
+                f.set_exception(QueryError(f"checkpoint failed: {e}"))
+
+    def _checkpoint_async(self, futures: list[Future] | None = None) -> None:
+        """Capture now (mapper thread), write on a writer thread (one at a time)."""
+        self._last_ckpt_time = time.monotonic()
+        if self._writer is not None and self._writer.is_alive():
+            self._writer.join()  # the previous write must land first: checkpoints stay ordered
+        header, arrays = self._capture()
+        self._writer = threading.Thread(target=self._write, args=(header, arrays, futures), name="h3edge-ckpt",
+                                        daemon=True)
+        self._writer.start()
+
+    # ----------------------------------------------------------------- queries
+    def _collect_stats(self) -> dict:
+        s = self.mapper.stats() if self.mapper.field is not None else {
+            "frames_mapped": self.mapper.frames_mapped, "dropped": dict(self.mapper.dropped), "voxels": 0,
+            "keyframes": 0, "memory_bytes": {}}
+        return s
+
+    def status(self) -> dict:
+        now = time.monotonic()
+        s = self._stats
+        dropped = dict(self._drops)
+        for k, v in s.get("dropped", {}).items():
+            dropped[k] = dropped.get(k, 0) + v
+
+        def rate(ts: collections.deque) -> float:
+            recent = [t for t in list(ts) if now - t < 10.0]
+            return round(len(recent) / 10.0, 2)
+
+        delays = list(self._delays)
+        return {"map_id": self.cfg.map_id, "profile": self.profile_name, "device": str(self.mapper.device),
+                "uptime_s": round(time.time() - self.started, 1),
+                "frames": {"received": self._counts["frames_received"], "mapped": s.get("frames_mapped", 0),
+                           "dropped": sum(dropped.values()), "queued": len(self._queue)},
+                "dropped": dropped, "poses": {"received": self._counts["poses_received"], "buffered": len(self.poses)},
+                "rates_hz": {"received": rate(self._recent_received), "mapped": rate(self._recent_mapped)},
+                "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
+                "map": {k: s.get(k) for k in ("voxels", "voxels_refused", "vertices", "keyframes", "keyframes_pruned",
+                                              "keyframes_evicted", "out_of_bound_points", "texture_classes")},
+                "memory": {"parts_bytes": s.get("memory_bytes", {}),
+                           "total_bytes": int(sum(s.get("memory_bytes", {}).values())),
+                           "budget_bytes": self.plan["budget"], "plan": self.plan},
+                "last_error": self.last_error, "last_checkpoint": self.last_checkpoint,
+                "resumed_from": self.resumed_from, "mapper_alive": self.alive}
+
+    def profile(self) -> dict:
+        from h3edge.mapping.timing import format_timings
+
+        summary = self.mapper.timings.summary()
+        n = self.mapper.frames_mapped
+        return {"profile": self.profile_name, "device": str(self.mapper.device), "frames": n, "components": summary,
+                "table": format_timings(summary, f"per-component timings ({self.profile_name}, {self.mapper.device})",
+                                        frames=n)}
+
+    def mesh(self, fmt: str = "ply", resolution: int | None = None, aabb: list | None = None) -> bytes:
+        if fmt not in ("ply", "glb", "obj"):
+            raise QueryError(f"format must be ply, glb or obj, got {fmt!r}")
+        res = resolution or self.settings.mapper.mesh_resolution
+        if not 1 <= res <= self.cfg.max_mesh_resolution:
+            raise QueryError(f"resolution must be 1..{self.cfg.max_mesh_resolution} cells per voxel, got {res}")
+        box = None
+        if aabb is not None:
+            box = np.asarray(aabb, np.float64)
+            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
+                raise QueryError("aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
+        view = self.view()
+        t0 = time.perf_counter()
+        mesh = view.mesh(res, box)
+        self.mapper.timings.add("mesh", time.perf_counter() - t0)
+        if len(mesh.faces) == 0:
+            raise QueryError("the map has no surface yet" + (" inside that aabb" if box is not None else ""))
+        return mesh.export(file_type=fmt)
+
+    def render(self, request: dict) -> bytes:
+        """A frame message (PNG colour, 16-bit PNG depth in mm, the pose) rendered at a pose."""
+        if not isinstance(request, dict):
+            raise QueryError("render request must be a JSON object")
+        unknown = set(request) - {"pose", "width", "height", "intrinsics", "fov_deg", "raw"}
+        if unknown:
+            raise QueryError(f"render request: unknown field(s) {', '.join(sorted(unknown))}")
+        try:
+            w, h = int(request.get("width", 320)), int(request.get("height", 240))
+        except (TypeError, ValueError):
+            raise QueryError("width and height must be integers") from None
+        if w <= 0 or h <= 0:
+            raise QueryError("width and height must be positive")
+        if w * h > self.cfg.max_render_pixels:
+            raise QueryError(f"{w}x{h} = {w * h} pixels exceeds this service's cap of {self.cfg.max_render_pixels}")
+        if "pose" not in request or not isinstance(request["pose"], dict):
+            raise QueryError('render request needs "pose": {"t": [...], "q": [x, y, z, w]} or {"matrix": [16]}')
+        try:
+            pose = pose_from_json(request["pose"], "pose")
+            if "intrinsics" in request:
+                k = request["intrinsics"]
+                intr = Intrinsics(w, h, float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]))
+            else:
+                fov = float(request.get("fov_deg", 80.0))
+                if not 1.0 <= fov <= 170.0:
+                    raise QueryError("fov_deg must be in [1, 170]")
+                f = (w / 2) / np.tan(np.radians(fov) / 2)
+                intr = Intrinsics(w, h, f, f, w / 2, h / 2)
+        except (ProtocolError, KeyError, TypeError, ValueError) as e:
+            raise QueryError(f"render request: {e}") from None
+        view = self.view()
+        t0 = time.perf_counter()
+        rgb, depth = view.render(intr, pose)
+        self.mapper.timings.add("render", time.perf_counter() - t0)
+        raw = bool(request.get("raw", False))
+        msg = FrameMessage(int(time.time() * 1e9), view.frames_mapped, rgb, depth, intr, pose, "render")
+        return encode_frame(msg, "raw_rgb8" if raw else "png", "raw_f32" if raw else "png16", 1000.0)
+
+
+def write_render(data: bytes, out: Path) -> tuple[Path, Path]:
+    """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
+    msg = decode_frame(data)
+    out = Path(out)
+    stem = out.with_suffix("") if out.suffix else out
+    cpath, dpath = Path(f"{stem}_color.png"), Path(f"{stem}_depth.png")
+    cpath.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(cpath), msg.color[..., ::-1])
+    cv2.imwrite(str(dpath), np.clip(msg.depth * 1000 + 0.5, 0, 65535).astype(np.uint16))
+    return cpath, dpath
+

@@ -1,0 +1,266 @@
+"""Zenoh transport: session set-up, the key layout, the server around a :class:`MapService`, the
+query client and the publisher used by ``h3edge sim publish``.
+
+Keys (``<base>`` = ``h3edge/<map-id>``): ``<base>/frame`` and ``<base>/pose`` (put), queryables
+``<base>/status``, ``/profile``, ``/mesh``, ``/render``, ``/save`` (docs/protocol.md).
+
+Zenoh callbacks only hand bytes over (frames to the service's bounded queue, poses to its pose
+buffer) or queue the query object; worker threads answer queries (status and profile on one, the
+heavy mesh / render / save on another), always inside ``with query:`` so the querier gets its
+final reply whatever happens, and errors go back as ``reply_err`` with the message.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import zenoh
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Keys:
+    base: str
+
+    @classmethod
+    def for_map(cls, map_id: str) -> "Keys":
+        if not map_id or any(c in map_id for c in "/*$?#"):
+            raise ValueError(f"map id {map_id!r} must be a non-empty zenoh chunk (no / * $ ? #)")
+        return cls(f"h3edge/{map_id}")
+
+    frame = property(lambda self: f"{self.base}/frame")
+    pose = property(lambda self: f"{self.base}/pose")
+    status = property(lambda self: f"{self.base}/status")
+    profile = property(lambda self: f"{self.base}/profile")
+    mesh = property(lambda self: f"{self.base}/mesh")
+    render = property(lambda self: f"{self.base}/render")
+    save = property(lambda self: f"{self.base}/save")
+
+
+def zenoh_config(path: str | None = None, mode: str | None = None, connect: list[str] | None = None,
+                 listen: list[str] | None = None, multicast: bool | None = None) -> zenoh.Config:
+    """A zenoh config from a JSON5 file (or zenoh's defaults), with command-line overrides."""
+    conf = zenoh.Config.from_file(path) if path else zenoh.Config()
+    if mode:
+        conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if multicast is not None:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
+    return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    zenoh.init_log_from_env_or("error")
+    return zenoh.open(conf)
+
+
+# ------------------------------------------------------------------------------------ server
+class ZenohServer:
+    """Wires a :class:`h3edge.serving.service.MapService` to zenoh keys."""
+
+    def __init__(self, service, session: zenoh.Session, map_id: str):
+        self.service, self.session, self.keys = service, session, Keys.for_map(map_id)
+        self._fast: queue.Queue = queue.Queue(maxsize=64)
+        self._heavy: queue.Queue = queue.Queue(maxsize=16)
+        self._entities: list = []
+        self._workers: list[threading.Thread] = []
+        self._closing = threading.Event()
+
+    def start(self) -> None:
+        s, k = self.service, self.keys
+        self._entities.append(self.session.declare_subscriber(k.frame, lambda sample: s.submit_frame(
+            sample.payload.to_bytes())))
+        self._entities.append(self.session.declare_subscriber(k.pose, lambda sample: s.submit_pose(
+            sample.payload.to_bytes())))
+        handlers = {"status": (self._fast, self._status), "profile": (self._fast, self._profile),
+                    "mesh": (self._heavy, self._mesh), "render": (self._heavy, self._render),
+                    "save": (self._heavy, self._save)}
+        for name, (q, fn) in handlers.items():
+            self._entities.append(self.session.declare_queryable(getattr(k, name), self._enqueue(q, fn),
+                                                                 complete=True))
+        for name, q in (("fast", self._fast), ("heavy", self._heavy)):
+            t = threading.Thread(target=self._work, args=(q,), name=f"h3edge-query-{name}", daemon=True)
+            t.start()
+            self._workers.append(t)
+        log.info("serving map under %s/**", k.base)
+
+    def _enqueue(self, q: queue.Queue, fn: Callable) -> Callable:
+        def cb(query) -> None:
+            try:
+                q.put_nowait((query, fn))
+            except queue.Full:  # the dropped query's querier gets an empty answer, not a hang
+                log.warning("query queue full: dropped a query on %s", query.key_expr)
+        return cb
+
+    def _work(self, q: queue.Queue) -> None:
+        from h3edge.serving.service import QueryError
+
+        while not self._closing.is_set():
+            try:
+                query, fn = q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            with query:
+                try:
+                    payload, encoding = fn(query)
+                    query.reply(query.key_expr, payload, encoding=encoding)
+                except QueryError as e:
+                    query.reply_err(str(e))
+                except Exception as e:  # noqa: BLE001 - any failure becomes an error reply
+                    log.exception("query on %s failed", query.key_expr)
+                    query.reply_err(f"internal error: {type(e).__name__}: {e}")
+
+    @staticmethod
+    def _request(query) -> dict:
+        from h3edge.serving.service import QueryError
+
+        out: dict = {}
+        if query.payload is not None:
+            raw = query.payload.to_bytes()
+            if raw:
+                try:
+                    out = json.loads(raw)
+                except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                    raise QueryError(f"query payload must be JSON: {e}") from None
+                if not isinstance(out, dict):
+                    raise QueryError("query payload must be a JSON object")
+        for k, v in query.parameters:  # selector parameters override: mesh?format=glb;resolution=4
+            out[k] = v
+        return out
+
+    def _status(self, query):
+        return json.dumps(self.service.status()).encode(), zenoh.Encoding.APPLICATION_JSON
+
+    def _profile(self, query):
+        return json.dumps(self.service.profile()).encode(), zenoh.Encoding.APPLICATION_JSON
+
+    def _mesh(self, query):
+        from h3edge.serving.service import QueryError
+
+        req = self._request(query)
+        unknown = set(req) - {"format", "resolution", "aabb"}
+        if unknown:
+            raise QueryError(f"mesh request: unknown field(s) {', '.join(sorted(unknown))}")
+        aabb = req.get("aabb")
+        try:
+            if isinstance(aabb, str):
+                v = [float(x) for x in aabb.split(",")]
+                if len(v) != 6:
+                    raise ValueError("aabb needs 6 numbers")
+                aabb = [v[:3], v[3:]]
+            res = int(req["resolution"]) if "resolution" in req else None
+        except ValueError as e:
+            raise QueryError(f"mesh request: {e}") from None
+        fmt = str(req.get("format", "ply"))
+        data = self.service.mesh(fmt, res, aabb)
+        return data, zenoh.Encoding("model/" + {"ply": "ply", "glb": "gltf-binary", "obj": "obj"}[fmt])
+
+    def _render(self, query):
+        return self.service.render(self._request(query)), zenoh.Encoding.APPLICATION_OCTET_STREAM
+
+    def _save(self, query):
+        return json.dumps(self.service.save()).encode(), zenoh.Encoding.APPLICATION_JSON
+
+    def close(self) -> None:
+        self._closing.set()
+        for e in self._entities:
+            try:
+                e.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        for t in self._workers:
+            t.join(5)
+
+
+# ------------------------------------------------------------------------------------ client
+class RemoteError(RuntimeError):
+    """The service answered with an error reply (the message is the service's)."""
+
+
+def query(session: zenoh.Session, key: str, payload: dict | None = None, params: str = "",
+          timeout: float = 60.0) -> bytes:
+    """One query; the reply's bytes, :class:`RemoteError` on an error reply, TimeoutError on none."""
+    selector = f"{key}?{params}" if params else key
+    body = json.dumps(payload).encode() if payload is not None else None
+    for reply in session.get(selector, payload=body, timeout=timeout):
+        if reply.ok is not None:
+            return reply.ok.payload.to_bytes()
+        raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
+    raise TimeoutError(f"no reply from {selector} within {timeout:.0f} s (is the service running?)")
+
+
+def wait_for_service(session: zenoh.Session, keys: Keys, timeout: float = 60.0) -> dict:
+    """Poll ``status`` until the service answers; returns its status."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            return json.loads(query(session, keys.status, timeout=2.0))
+        except TimeoutError:
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.2)
+
+
+# --------------------------------------------------------------------------------- publisher
+def publish_sequence(session: zenoh.Session, seq, keys: Keys, rate: float = 30.0, pose_rate: float | None = None,
+                     jitter_ms: float = 0.0, frames: int | None = None, stride: int = 1, embed_pose: bool = False,
+                     seed: int = 0, stop: threading.Event | None = None, on_frame: Callable | None = None,
+                     color_encoding: str = "jpeg") -> dict:
+    """Stream a sequence as the robot would: frames at ``rate`` Hz and poses on their own key at
+    ``pose_rate`` Hz (SLERP-interpolated along the trajectory; default: 30 Hz, odometry-like), each
+    message sent up to ``jitter_ms`` late (timestamps stay exact). Timestamps are host time."""
+    from h3edge.geometry.poses import interpolate_pose
+    from h3edge.io.protocol import FrameMessage, PoseMessage, encode_frame, encode_pose
+
+    idx = list(range(0, len(seq), max(1, stride)))[:frames]
+    rng = np.random.default_rng(seed)
+    pub_f = session.declare_publisher(keys.frame, congestion_control=zenoh.CongestionControl.BLOCK)
+    pub_p = session.declare_publisher(keys.pose, congestion_control=zenoh.CongestionControl.BLOCK)
+    poses = seq.poses[idx]
+    t0 = time.time() + 0.5
+    frame_t = t0 + np.arange(len(idx)) / rate
+    events: list[tuple[float, str, int]] = [(t, "frame", i) for i, t in enumerate(frame_t)]
+    if not embed_pose:
+        pr = pose_rate or 30.0
+        pose_t = np.arange(t0 - 0.2, frame_t[-1] + 0.3, 1.0 / pr)
+        events += [(t, "pose", j) for j, t in enumerate(pose_t)]
+    jit = rng.uniform(0, jitter_ms / 1000.0, len(events)) if jitter_ms > 0 else np.zeros(len(events))
+    order = np.argsort([e[0] + j for e, j in zip(events, jit)], kind="stable")
+    sent = {"frames": 0, "poses": 0}
+    for k in order:
+        t, kind, i = events[k]
+        delay = t + jit[k] - time.time()
+        if delay > 0:
+            if stop is not None and stop.wait(delay):
+                break
+            elif stop is None:
+                time.sleep(delay)
+        ts = int(t * 1e9)
+        if kind == "frame":
+            f = seq[idx[i]]
+            msg = FrameMessage(ts, int(idx[i]), f.color, f.depth, f.intrinsics, f.pose if embed_pose else None)
+            pub_f.put(encode_frame(msg, color_encoding))
+            sent["frames"] += 1
+            if on_frame is not None:
+                on_frame(i, len(idx))
+        else:
+            u = (t - t0) * rate  # position along the frame sequence
+            a = int(np.clip(np.floor(u), 0, len(idx) - 1))
+            b = min(a + 1, len(idx) - 1)
+            alpha = float(np.clip(u - a, 0.0, 1.0)) if b > a else 0.0
+            pub_p.put(encode_pose(PoseMessage(ts, interpolate_pose(poses[a], poses[b], alpha))))
+            sent["poses"] += 1
+    pub_f.undeclare()
+    pub_p.undeclare()
+    return sent
