@@ -67,3 +67,14 @@ def test_last_keyframe_survives_pruning():
 def test_scores_must_match():
     with pytest.raises(ValueError):
         KeyframeSet().insert(0, ids(0, 3), scores=np.ones(2))
+
+
+def test_cap_evicts_least_informative_never_newest():
+    from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
+
+    ks = KeyframeSet(KeyframeConfig(max_keyframes=3))
+    for i, score in enumerate([5.0, 1.0, 9.0, 0.5]):
+        ks.insert(i, np.arange(4) + i, np.full(4, score))
+    assert [k.frame_id for k in ks.keyframes] == [0, 2, 3]  # frame 1 (total 4) evicted; 3 is newest
+    ks.insert(4, np.arange(4), np.full(4, 0.1))
+    assert [k.frame_id for k in ks.keyframes] == [0, 2, 4] and ks.evicted == 2

@@ -1,0 +1,154 @@
+"""Wire protocol codec, pose association, checkpoint files, sd_notify, memory plan: unit level."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import numpy as np
+import pytest
+
+from h3edge.config import load_profile
+from h3edge.geometry.camera import Intrinsics, look_at
+from h3edge.geometry.poses import interpolate_pose
+from h3edge.io.protocol import (FrameMessage, PoseMessage, ProtocolError, decode_frame, decode_pose, encode_frame,
+                                encode_pose)
+from h3edge.serving.association import PoseBuffer
+from h3edge.serving.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
+from h3edge.serving.service import memory_plan, keyframe_bytes
+from h3edge.serving.systemd import Notifier
+
+INTR = Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)
+POSE = look_at(np.array([1.0, 2.0, 1.5]), np.array([0.0, 0.0, 1.0]))
+
+
+def _msg(pose=POSE) -> FrameMessage:
+    rng = np.random.default_rng(0)
+    color = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 4.0, (24, 32)).astype(np.float32)
+    depth[0, :5] = 0
+    return FrameMessage(123_456_789, 7, color, depth, INTR, pose, "cam")
+
+
+@pytest.mark.parametrize("cenc, denc, tol", [("png", "png16", 0.0006), ("raw_rgb8", "raw_u16", 0.0006),
+                                             ("png", "raw_f32", 0.0), ("jpeg", "png16", 0.0006)])
+def test_frame_round_trip(cenc, denc, tol):
+    m = _msg()
+    out = decode_frame(encode_frame(m, cenc, denc, 1000.0))
+    assert (out.timestamp_ns, out.frame_id, out.intrinsics, out.frame_name) == (m.timestamp_ns, 7, INTR, "cam")
+    assert np.abs(out.depth - m.depth).max() <= tol and (out.depth[0, :5] == 0).all()
+    if cenc != "jpeg":
+        assert np.array_equal(out.color, m.color)
+    assert np.allclose(out.pose, POSE, atol=1e-9)
+    assert decode_frame(encode_frame(_msg(None))).pose is None
+
+
+def _header_edit(data: bytes, fn) -> bytes:
+    n = int.from_bytes(data[4:8], "little")
+    h = json.loads(data[8:8 + n])
+    fn(h)
+    hb = json.dumps(h).encode()
+    return data[:4] + len(hb).to_bytes(4, "little") + hb + data[8 + n:]
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda h: h.update(extra=1), "unknown field"),
+    (lambda h: h.update(v=2), "version"),
+    (lambda h: h.update(width=33), "header says|needs"),
+    (lambda h: h["intrinsics"].update(fx=float("nan")), "finite"),
+    (lambda h: h.update(depth_scale=0), "positive"),
+    (lambda h: h["color"].update(encoding="bmp"), "encoding"),
+    (lambda h: h["pose"].update(q=[0, 0, 0, 3]), "unit quaternion"),
+    (lambda h: h.update(pose={"matrix": [1, 0, 0, 0, 0, 2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}), "rigid"),
+    (lambda h: h.update(timestamp_ns=-1), "outside"),
+    (lambda h: h.update(width=100000), "outside|limit"),
+])
+def test_frame_decode_rejects(edit, match):
+    data = _header_edit(encode_frame(_msg(), "png", "raw_u16"), edit)
+    with pytest.raises(ProtocolError, match=match):
+        decode_frame(data)
+
+
+def test_frame_decode_rejects_truncation_and_garbage():
+    data = encode_frame(_msg())
+    for bad in (data[:-1], data + b"x", data[:6], b"H3FR" + (10 ** 6).to_bytes(4, "little"), b""):
+        with pytest.raises(ProtocolError):
+            decode_frame(bad)
+
+
+def test_pose_round_trip_and_rejects():
+    p = decode_pose(encode_pose(PoseMessage(5, POSE, "odom")))
+    assert p.timestamp_ns == 5 and p.frame_name == "odom" and np.allclose(p.pose, POSE, atol=1e-9)
+    m = json.dumps({"v": 1, "timestamp_ns": 9, "matrix": POSE.reshape(-1).tolist()}).encode()
+    assert np.allclose(decode_pose(m).pose, POSE)
+    for bad in (b"{", b"[]", json.dumps({"v": 1, "timestamp_ns": 1}).encode(),
+                json.dumps({"v": 1, "timestamp_ns": 1, "t": [0, 0], "q": [0, 0, 0, 1]}).encode(),
+                json.dumps({"v": 1, "timestamp_ns": 1, "t": [0, 0, 0], "q": [0, 0, 0, 1], "x": 1}).encode()):
+        with pytest.raises(ProtocolError):
+            decode_pose(bad)
+
+
+def test_pose_buffer_interpolates_waits_and_misses():
+    b = PoseBuffer(capacity=4, max_gap_s=0.1)
+    a = POSE
+    c = look_at(np.array([1.5, 2.0, 1.5]), np.array([0.0, 0.5, 1.0]))
+    assert b.lookup(10) == ("wait", None)
+    assert b.add(100_000_000, c) == "" and b.add(50_000_000, a) == ""  # out of order is fine
+    assert b.add(50_000_000, a) == "duplicate"
+    bad = np.eye(4)
+    bad[0, 0] = 2
+    assert b.add(60_000_000, bad) == "bad_pose"
+    state, pose = b.lookup(75_000_000)
+    assert state == "ok" and np.allclose(pose, interpolate_pose(a, c, 0.5))
+    assert b.lookup(50_000_000)[0] == "ok"
+    assert b.lookup(100_000_001) == ("wait", None)  # no pose after it yet
+    assert b.lookup(10)[0] == "miss"  # older than the buffer
+    b.add(400_000_000, c)
+    assert b.lookup(300_000_000)[0] == "miss"  # poses 300 ms apart > 100 ms
+    for t in range(5):
+        b.add(500_000_000 + t, c)
+    assert len(b) == 4
+
+
+def test_checkpoint_atomic_and_checked(tmp_path):
+    p = tmp_path / "m" / "map.h3ckpt"
+    arrays = {"a": np.arange(10.0), "b/c": np.ones((3, 2), np.uint8)}
+    size = write_checkpoint(p, {"map_id": "x", "frames_mapped": 3}, arrays)
+    assert p.stat().st_size == size and not (p.parent / "map.h3ckpt.tmp").exists()
+    h, got = read_checkpoint(p)
+    assert h["map_id"] == "x" and h["format_version"] == 1 and np.array_equal(got["b/c"], arrays["b/c"])
+    raw = bytearray(p.read_bytes())
+    raw[-20] ^= 0xFF  # flip a payload byte
+    p.write_bytes(bytes(raw))
+    with pytest.raises(CheckpointError, match="checksum"):
+        read_checkpoint(p)
+    p.write_bytes(bytes(raw[:100]))
+    with pytest.raises(CheckpointError):
+        read_checkpoint(p)
+    p.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="magic"):
+        read_checkpoint(p)
+
+
+def test_notifier_sends_datagrams(tmp_path):
+    addr = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(addr)
+    srv.settimeout(2)
+    n = Notifier({"NOTIFY_SOCKET": addr, "WATCHDOG_USEC": "30000000"})
+    assert n.enabled and n.watchdog_interval() == 15.0
+    assert n.ready("mapping")
+    assert srv.recv(100) == b"READY=1\nSTATUS=mapping"
+    assert n.watchdog() and srv.recv(100) == b"WATCHDOG=1"
+    srv.close()
+    off = Notifier({})
+    assert not off.enabled and off.watchdog_interval() is None and not off.ready()
+
+
+def test_memory_plan_sets_keyframe_cap():
+    s = load_profile("x86-cpu").map_settings()
+    kb = keyframe_bytes(s)
+    big, small = memory_plan(s, 4096, kb), memory_plan(s, 300, kb)
+    assert big["max_keyframes"] > small["max_keyframes"] >= 8
+    assert big["hash_tables"] == small["hash_tables"] > 0
+    assert big["hash_tables"] + big["voxels_at_cap"] + big["query_snapshot"] + big["keyframes"] == big["budget"]
