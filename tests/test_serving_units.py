@@ -152,3 +152,17 @@ def test_memory_plan_sets_keyframe_cap():
     assert big["max_keyframes"] > small["max_keyframes"] >= 8
     assert big["hash_tables"] == small["hash_tables"] > 0
     assert big["hash_tables"] + big["voxels_at_cap"] + big["query_snapshot"] + big["keyframes"] == big["budget"]
+
+
+def test_deploy_files():
+    import zenoh
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for f in ("zenoh-peer.json5", "zenoh-tls-acl.json5"):
+        zenoh.Config.from_file(str(root / "deploy" / f))  # parses with this zenoh
+    unit = (root / "systemd" / "h3edge.service").read_text()
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=h3edge", "MemoryMax=",
+                 "--resume"):
+        assert line in unit
+    assert "PrivateDevices" not in unit and "MemoryDenyWriteExecute" not in unit
