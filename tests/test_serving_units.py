@@ -165,4 +165,5 @@ def test_deploy_files():
     for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=h3edge", "MemoryMax=",
                  "--resume"):
         assert line in unit
-    assert "PrivateDevices" not in unit and "MemoryDenyWriteExecute" not in unit
+    directives = [ln.split("=")[0] for ln in unit.splitlines() if ln and not ln.startswith("#")]
+    assert "PrivateDevices" not in directives and "MemoryDenyWriteExecute" not in directives
