@@ -116,8 +116,9 @@ def run_soak(profile: str, work: Path, frames: int, rate: float, budget_mb: int)
     prof_path = work / "soak.toml"
     src = Path(profile) if Path(profile).suffix else Path(__file__).resolve().parents[2] / "profiles" / f"{profile}.toml"
     text = src.read_text()
-    prof_path.write_text(text.replace("[voxels]", "[voxels]\nmin_points = 3", 1)
-                         + f"\n[service]\nmemory_budget_mb = {budget_mb}\ncheckpoint_interval_s = 30.0\n")
+    lines = [ln for ln in text.splitlines() if not ln.startswith("min_points")]  # 160x120: 3 points per voxel
+    text = "\n".join(lines).replace("[voxels]", "[voxels]\nmin_points = 3", 1)
+    prof_path.write_text(text + f"\n[service]\nmemory_budget_mb = {budget_mb}\ncheckpoint_interval_s = 30.0\n")
     svc = ServiceProcess(prof_path, work / "state_soak", "soak", work / "service_soak.log")
     samples = []
     try:
