@@ -33,6 +33,9 @@ def served(tiny_scene, tmp_path_factory):
     wait_for_service(session, KEYS)
     seq = ReplicaSequence(tiny_scene)
     sent = publish_sequence(session, seq, KEYS, rate=4.0, pose_rate=30.0, jitter_ms=20)
+    end = time.monotonic() + 30
+    while json.loads(query(session, KEYS.status))["frames"]["received"] < sent["frames"] and time.monotonic() < end:
+        time.sleep(0.1)
     status = wait_drained(session, KEYS, timeout=300)
     yield svc, session, seq, sent, status, state
     session.close()
@@ -155,6 +158,10 @@ def test_malformed_messages_are_counted_and_dropped(served):
     pub_f.put(encode_frame(_frame(seq, 5, now + 5, pose=False)))  # good: pose from the pose stream
     time.sleep(0.5)
     pub_f.put(encode_frame(_frame(seq, 5, now + 5, pose=False)))  # the same frame again: duplicate
+    end = time.monotonic() + 30  # every message has arrived, then every frame is mapped or dropped
+    while json.loads(query(session, KEYS.status))["frames"]["received"] < before["frames"]["received"] + 7:
+        assert time.monotonic() < end
+        time.sleep(0.1)
     s = wait_drained(session, KEYS, timeout=60)
     d, d0 = s["dropped"], before["dropped"]
     grew = lambda k: d.get(k, 0) - d0.get(k, 0)  # noqa: E731
