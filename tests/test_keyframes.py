@@ -78,3 +78,14 @@ def test_cap_evicts_least_informative_never_newest():
     assert [k.frame_id for k in ks.keyframes] == [0, 2, 3]  # frame 1 (total 4) evicted; 3 is newest
     ks.insert(4, np.arange(4), np.full(4, 0.1))
     assert [k.frame_id for k in ks.keyframes] == [0, 2, 4] and ks.evicted == 2
+
+
+def test_repeated_frame_ids_do_not_break_selection():
+    """Frame ids come from the publisher and may repeat; keyframes compare by identity."""
+    from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
+
+    ks = KeyframeSet(KeyframeConfig(per_iteration=3))
+    ks.insert(1, np.arange(5), np.ones(5))
+    ks.insert(1, np.arange(3, 12), np.ones(9))
+    chosen = ks.select()
+    assert len(chosen) == 2

@@ -32,7 +32,7 @@ class KeyframeConfig:
     max_keyframes: int = 0  # cap (0: none); past it the least informative keyframe is evicted
 
 
-@dataclass
+@dataclass(eq=False)  # identity: frame ids may repeat (a publisher restarting its counter)
 class Keyframe:
     frame_id: int
     voxels: np.ndarray  # unique voxel ids the frame observes

@@ -83,10 +83,29 @@ class MapView:
         """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit)."""
         return self.renderer().render(intr, c2w)
 
-    def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True
-             ) -> trimesh.Trimesh:
-        """Marching-cubes mesh of the map, vertex colours from the colour field."""
+    @torch.no_grad()
+    def banded_sdf_np(self, pts: np.ndarray, margin: float) -> np.ndarray:
+        """SDF with the residual evaluated only where |prior| < ``margin`` (truncation units); the
+        prior alone elsewhere (same sign there while the residual stays under ``margin``). Points
+        are located once for both."""
+        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
+        located = self.voxels.locate(pts)
+        prior, inside = self.voxels.coarse_sdf(p, located)
+        near = torch.nonzero(inside & (prior.abs() < margin)).squeeze(1)
+        out = prior.clone()
+        if len(near):
+            sel = near.cpu().numpy()
+            sub = (located[0][sel], located[1][sel])
+            out[near] = self.field.sdf(p[near], self.voxels, sub, (prior[near], inside[near]))[0]
+        return out.cpu().numpy()
+
+    def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
+             prior_margin: float | None = 1.0) -> trimesh.Trimesh:
+        """Marching-cubes mesh of the map, vertex colours from the colour field. The residual MLP is
+        evaluated at lattice points whose prior is within ``prior_margin`` truncation units of the
+        surface (None: everywhere), where the zero crossing can be."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
-        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, self.sdf_np, resolution or self.mesh_resolution,
+        sdf = self.sdf_np if prior_margin is None else (lambda x: self.banded_sdf_np(x, prior_margin))
+        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, sdf, resolution or self.mesh_resolution,
                             self.color_np if color else None, aabb=aabb)

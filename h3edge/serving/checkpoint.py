@@ -5,7 +5,8 @@ header (``format_version``, ``map_id``, ``created_unix``, ``frames_mapped``, ``p
 settings, ``payload_bytes``, ``payload_sha256``, the mapper's JSON state), then the payload: the
 mapper's arrays as an uncompressed ``.npz`` (read back with ``allow_pickle=False``).
 
-Writing goes to ``<name>.tmp`` in the same directory, is flushed and fsync'ed, renamed over
+Writing streams the payload through ``<name>.payload.tmp``, then goes to ``<name>.tmp`` in the same
+directory, is flushed and fsync'ed, renamed over
 ``<name>`` and the directory is fsync'ed: a reader sees the previous checkpoint or the new one,
 never a torn file, whatever moment the process is killed at. Reading checks the magic, the
 version, the length and the checksum, and names what is wrong.
@@ -17,6 +18,7 @@ import hashlib
 import io
 import json
 import os
+import shutil
 import struct
 import time
 from pathlib import Path
@@ -33,28 +35,39 @@ class CheckpointError(ValueError):
 
 
 def write_checkpoint(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> int:
-    """Atomically write a checkpoint; returns its size in bytes."""
+    """Atomically write a checkpoint; returns its size in bytes. The payload is streamed through
+    a scratch file (no in-memory copy of it), hashed, then copied behind the header."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    payload = buf.getvalue()
-    head = dict(header, format_version=FORMAT_VERSION, created_unix=time.time(), payload_bytes=len(payload),
-                payload_sha256=hashlib.sha256(payload).hexdigest())
-    hb = json.dumps(head).encode()
+    scratch = path.with_name(path.name + ".payload.tmp")
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(MAGIC + struct.pack("<I", len(hb)) + hb)
-        f.write(payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(scratch, "w+b") as pf:
+            np.savez(pf, **arrays)
+            size = pf.tell()
+            pf.seek(0)
+            digest = hashlib.sha256()
+            for chunk in iter(lambda: pf.read(1 << 20), b""):
+                digest.update(chunk)
+            head = dict(header, format_version=FORMAT_VERSION, created_unix=time.time(), payload_bytes=size,
+                        payload_sha256=digest.hexdigest())
+            hb = json.dumps(head).encode()
+            pf.seek(0)
+            with open(tmp, "wb") as f:
+                f.write(MAGIC + struct.pack("<I", len(hb)) + hb)
+                shutil.copyfileobj(pf, f, 1 << 20)
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        for leftover in (scratch, tmp):
+            leftover.unlink(missing_ok=True)
     dfd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(dfd)
     finally:
         os.close(dfd)
-    return len(MAGIC) + 4 + len(hb) + len(payload)
+    return len(MAGIC) + 4 + len(hb) + size
 
 
 def read_header(path: Path) -> tuple[dict, int]:
@@ -86,6 +99,9 @@ def read_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         raise CheckpointError(f"{path}: payload is {len(payload)} bytes, header says {header.get('payload_bytes')}")
     if hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
         raise CheckpointError(f"{path}: payload checksum mismatch (corrupt file)")
-    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
+    try:
+        with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (ValueError, OSError) as e:
+        raise CheckpointError(f"{path}: payload is not a readable array archive ({e})") from None
     return header, arrays

@@ -1,6 +1,7 @@
 """The ``h3edge serve`` process: a :class:`MapService` behind zenoh, with signals and systemd.
 
-Start-up: load (or resume) the map, open the zenoh session, declare keys, start the mapper
+Start-up: load (or resume) the map, run every kernel once on a throwaway map (compiled code is
+loaded now, not at the first frame or query), open the zenoh session, declare keys, start the mapper
 thread, then tell systemd READY=1. While running, WATCHDOG=1 goes out only while the mapper
 thread's heartbeat is fresh (a wedged mapper stops the pings and systemd restarts the service).
 SIGTERM / SIGINT: STOPPING=1, stop ingest, finish the frame in progress, write a final checkpoint,
@@ -36,6 +37,7 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, on_signal)
         signal.signal(signal.SIGINT, on_signal)
+    log.info("warm-up (loading compiled kernels) took %.1f s", service.warm_up())
     session = open_session(zconf)
     server = ZenohServer(service, session, cfg.map_id)
     try:

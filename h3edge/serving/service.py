@@ -43,6 +43,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import FrameMessage, ProtocolError, decode_frame, decode_pose, encode_frame, pose_from_json
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
 from h3edge.serving.association import PoseBuffer
@@ -84,11 +85,13 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int) -> d
     voxels = settings.voxels.max_voxels * per_voxel
     snapshot = tables // 4 + voxels // 2  # a query's frozen copy: the tables and the voxel map
     budget = int(budget_mb) << 20
-    left = budget - tables - voxels - snapshot
+    working = max(64 << 20, budget * 15 // 100)  # scratch of one mesh / render query (meshes above it are refused)
+    checkpoint = tables * 3 // 4 + voxels // 2  # the state captured for the checkpoint writer
+    left = budget - tables - voxels - snapshot - working - checkpoint
     cap = max(8, left // max(1, keyframe_bytes))
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
-            "keyframes": max(0, left), "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap),
-            "fits": left >= 8 * keyframe_bytes}
+            "query_working_set": working, "checkpoint_capture": checkpoint, "keyframes": max(0, left),
+            "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap), "fits": left >= 8 * keyframe_bytes}
 
 
 def keyframe_bytes(settings: MapSettings, width: int = 640, height: int = 480) -> int:
@@ -160,6 +163,30 @@ class MapService:
         log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.cfg.map_id,
                  self.checkpoint_path, self.mapper.frames_mapped, len(self.mapper.voxels),
                  len(self.mapper.keyframes.keyframes))
+
+    def warm_up(self) -> float:
+        """Run every kernel once (map two synthetic frames on a throwaway small map, render, mesh),
+        so that loading compiled code is start-up cost, not the first frame's or query's. Seconds."""
+        t0 = time.perf_counter()
+        st = self.settings
+        small = dataclasses.replace(
+            st, field=dataclasses.replace(st.field, geo_log2_table=12, tex_log2_table=12),
+            voxels=dataclasses.replace(st.voxels, min_points=1, max_voxels=10_000),
+            mapper=dataclasses.replace(st.mapper, rays_per_iteration=256, extent=4.0),
+            texture=dataclasses.replace(st.texture, update_interval=1))
+        m = Mapper(small)
+        intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
+        u, v = np.meshgrid(np.arange(64), np.arange(48))
+        color = np.where(((u // 8 + v // 8) % 2 == 0)[..., None], np.uint8(200), np.uint8(40)).repeat(3, -1)
+        depth = np.full((48, 64), 1.5, np.float32)
+        for i in range(2):
+            pose = np.eye(4)
+            pose[0, 3] = 0.02 * i
+            m.process(Frame(i, float(i), color, depth, pose, intr))
+        view = m.view().frozen()
+        view.render(intr, np.eye(4))
+        view.mesh(2)
+        return time.perf_counter() - t0
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="h3edge-mapper", daemon=True)
@@ -407,6 +434,11 @@ class MapService:
             if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
                 raise QueryError("aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
         view = self.view()
+        need = working_bytes(view.voxels.voxel_keys, view.voxel_size, res, box)
+        if need > self.plan["query_working_set"]:
+            raise QueryError(f"a mesh at resolution {res} of this region needs ~{need >> 20} MB of scratch, over this "
+                             f"service's {self.plan['query_working_set'] >> 20} MB query budget: use a lower "
+                             f"resolution or an aabb")
         t0 = time.perf_counter()
         mesh = view.mesh(res, box)
         self.mapper.timings.add("mesh", time.perf_counter() - t0)
