@@ -7,7 +7,6 @@ in every process: the first render of a service would have paid it).
 import math
 
 import numba as nb
-import numpy as np
 
 
 @nb.njit(inline="always")

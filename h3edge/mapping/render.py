@@ -19,7 +19,6 @@ Rays with no crossing or no weight render as depth 0, colour black.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
