@@ -17,6 +17,7 @@ from pathlib import Path
 
 from h3edge.eval.evaluate import EvalConfig
 from h3edge.mapping.mapper import MapSettings
+from h3edge.mapping.onnx_decoders import InferenceConfig
 from h3edge.serving.service import ServiceConfig
 
 PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
@@ -29,11 +30,12 @@ class ProfileError(ValueError):
 @dataclass(frozen=True)
 class Profile(MapSettings):
     """A device profile: the mapper's settings (one TOML table per :class:`MapSettings` section),
-    plus evaluation and service settings."""
+    plus evaluation, service and query-inference settings."""
 
     name: str = "default"
     eval: EvalConfig = dc_field(default_factory=EvalConfig)
     service: ServiceConfig = dc_field(default_factory=ServiceConfig)
+    inference: InferenceConfig = dc_field(default_factory=InferenceConfig)
 
     def map_settings(self) -> MapSettings:
         return MapSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(MapSettings)})

@@ -2,7 +2,8 @@
 
 DIR/mesh.ply (vertex colours), DIR/renders/ (held-out or training views: colour PNG, 16-bit depth
 PNG in mm, and a GT | render strip), DIR/metrics.json + .md (:func:`h3edge.eval.evaluate.evaluate`),
-DIR/timings.json + .md (per-component, per-frame), DIR/run.json (profile settings, map stats).
+DIR/timings.json + .md (per-component, per-frame), DIR/run.json (profile settings, map stats),
+DIR/decoders/{sdf,color}.onnx (the trained decoders, as queries run them).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from h3edge.config import Profile
 from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence
 from h3edge.mapping.mapper import Mapper
+from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.mapping.timing import format_timings
 
 log = logging.getLogger(__name__)
@@ -66,6 +68,9 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     map_s = time.perf_counter() - t0
     mesh = mapper.mesh()
     mesh.export(out / "mesh.ply")
+    (out / "decoders").mkdir(exist_ok=True)
+    for name, model in export_decoders(mapper.field).items():  # what queries run, for serving from DIR
+        (out / "decoders" / f"{name}.onnx").write_bytes(model)
     held = getattr(seq, "heldout", None)
     write_renders(mapper, held if held is not None and len(held) else seq, out / "renders")
     summary = mapper.timings.summary()

@@ -94,7 +94,7 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
     """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray whose
     prior crossing gets no rendering weight (the residual moved the surface away from it) marches
     on past that window, up to ``cfg.retries`` times."""
-    dev = next(field_.parameters()).device
+    dev = field_.geo_grid.table.device
     n = len(dirs)
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)

@@ -3,7 +3,8 @@
 :class:`MapView` answers mesh and render requests from a field and its voxels. The mapper uses one
 over its live state; a service takes :meth:`MapView.frozen` copies (the tables, MLPs, priors and
 voxel index, without optimiser state: ~2x the tables' bytes, tens of ms) so that a long mesh or
-render runs beside training without seeing half-updated parameters or holding the mapper up.
+render runs beside training without seeing half-updated parameters or holding the mapper up;
+a copy can carry ONNX-exported decoders run by onnxruntime (:mod:`h3edge.mapping.onnx_decoders`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.field import Field
 from h3edge.mapping.mesh import extract_mesh
+from h3edge.mapping.onnx_decoders import InferenceConfig, OrtMLP, export_decoders
 from h3edge.mapping.render import MapRenderer, RenderConfig
 from h3edge.mapping.voxels import VoxelMap
 
@@ -57,9 +59,17 @@ class MapView:
         self.mesh_resolution = mesh_resolution
         self.frames_mapped = frames_mapped
 
-    def frozen(self) -> "MapView":
-        """An independent copy (call where the field is not being updated)."""
-        return MapView(_inference_copy(self.field), _voxels_copy(self.voxels), self.voxel_size, self.beta,
+    def frozen(self, inference: InferenceConfig | None = None) -> "MapView":
+        """An independent copy (call where the field is not being updated). With ``inference``
+        asking for ONNX, its decoders are exported and run by onnxruntime."""
+        field = _inference_copy(self.field)
+        if inference is not None and inference.decoders == "onnx":
+            models = export_decoders(field)
+            field.sdf_mlp = OrtMLP(models["sdf"], inference)
+            field.color_mlp = OrtMLP(models["color"], inference)
+        elif inference is not None and inference.decoders != "torch":
+            raise ValueError(f"inference.decoders must be onnx or torch, got {inference.decoders!r}")
+        return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.beta,
                        self.render_cfg, self.mesh_resolution, self.frames_mapped)
 
     @property

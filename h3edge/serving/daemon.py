@@ -28,7 +28,7 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
     stop = stop or threading.Event()
     notifier = notifier or Notifier()
     cfg = profile.service
-    service = MapService(profile.map_settings(), cfg, profile.name, resume=resume)
+    service = MapService(profile.map_settings(), cfg, profile.name, resume=resume, inference=profile.inference)
 
     def on_signal(signum, _frame) -> None:
         log.info("signal %d: stopping", signum)

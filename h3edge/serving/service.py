@@ -43,6 +43,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import FrameMessage, ProtocolError, decode_frame, decode_pose, encode_frame, pose_from_json
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.onnx_decoders import InferenceConfig, export_decoders
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
@@ -108,8 +109,9 @@ class _Pending:
 
 class MapService:
     def __init__(self, settings: MapSettings, cfg: ServiceConfig = ServiceConfig(), profile_name: str = "",
-                 resume: bool = False):
+                 resume: bool = False, inference: InferenceConfig = InferenceConfig()):
         self.settings, self.cfg, self.profile_name = settings, cfg, profile_name
+        self.inference = inference
         self.plan = memory_plan(settings, cfg.memory_budget_mb, keyframe_bytes(settings))
         if not self.plan["fits"]:
             log.warning("memory budget %d MB leaves little for keyframes: %s", cfg.memory_budget_mb, self.plan)
@@ -183,7 +185,7 @@ class MapService:
             pose = np.eye(4)
             pose[0, 3] = 0.02 * i
             m.process(Frame(i, float(i), color, depth, pose, intr))
-        view = m.view().frozen()
+        view = m.view().frozen(self.inference)
         view.render(intr, np.eye(4))
         view.mesh(2)
         return time.perf_counter() - t0
@@ -309,7 +311,7 @@ class MapService:
             try:
                 if self.mapper.field is None:
                     raise QueryError("nothing mapped yet")
-                view = self.mapper.view().frozen()
+                view = self.mapper.view().frozen(self.inference)
                 self._view, self._view_time = view, time.monotonic()
                 for f in views:
                     f.set_result(view)
@@ -348,6 +350,8 @@ class MapService:
 
     def _capture(self) -> tuple[dict, dict]:
         meta, arrays = mapper_state(self.mapper)
+        for name, model in export_decoders(self.mapper.field).items():  # versioned with the map
+            arrays[f"onnx/{name}"] = np.frombuffer(model, np.uint8)
         header = {"map_id": self.cfg.map_id, "profile": self.profile_name, "frames_mapped": self.mapper.frames_mapped,
                   "settings": dataclasses.asdict(self.settings), "state": meta}
         return header, arrays
