@@ -5,9 +5,15 @@ from h3edge.config import PROFILES_DIR, ProfileError, load_profile
 
 @pytest.mark.parametrize("path", sorted(PROFILES_DIR.glob("*.toml")), ids=lambda p: p.stem)
 def test_every_profile_loads(path):
+    from h3edge.serving.service import keyframe_bytes, memory_plan
+
     prof = load_profile(path)
     assert prof.name == path.stem
     assert prof.eval.n_points > 0
+    settings = prof.map_settings()
+    plan = memory_plan(settings, prof.service.memory_budget_mb, keyframe_bytes(settings))
+    assert plan["fits"], plan  # the budget holds the tables, the voxel cap, query scratch and >= 8 keyframes
+    assert prof.inference.decoders in ("onnx", "torch")
 
 
 def test_profile_by_name():

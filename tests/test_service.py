@@ -120,7 +120,8 @@ def test_bad_mesh_request_gets_error_reply(served):
 def test_profile_query(served):
     _, session, *_ = served
     p = json.loads(query(session, KEYS.profile))
-    assert {"read", "priors", "keyframes", "training", "frame"} <= set(p["components"])
+    assert {"read", "priors", "keyframes", "training", "frame", "ingest", "queue_wait", "association",
+            "frame_delay"} <= set(p["components"])
     assert "map training" in p["table"]
 
 

@@ -20,7 +20,8 @@ PAPER_COMPONENTS = ("read", "priors", "texture", "keyframes", "training")
 LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
           "texture": "texture pattern determination", "keyframes": "keyframe policy",
           "training": "map training", "mesh": "mesh extraction", "render": "render at pose",
-          "frame": "whole frame"}
+          "frame": "whole frame", "ingest": "ingest (zenoh callback)", "queue_wait": "queue wait",
+          "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write"}
 
 
 @dataclass
@@ -69,6 +70,6 @@ def format_timings(summary: dict[str, dict[str, float]], title: str = "timings",
     rows = [f"### {title}", "", "| component | median [ms] | p95 [ms] | count | per frame [ms] |", "|---|---|---|---|---|"]
     for c in order:
         s = summary[c]
-        per = f"{1000 * s['total_s'] / frames:.1f}" if frames and c not in ("mesh", "render") else ""
+        per = f"{1000 * s['total_s'] / frames:.1f}" if frames and c in PAPER_COMPONENTS + ("frame",) else ""
         rows.append(f"| {LABELS.get(c, c)} | {s['median_ms']:.1f} | {s['p95_ms']:.1f} | {s['count']} | {per} |")
     return "\n".join(rows)

@@ -217,6 +217,7 @@ class MapService:
     def submit_frame(self, data: bytes) -> None:
         """Queue a raw frame message (called from the transport's thread; never blocks)."""
         now = time.monotonic()
+        t0 = time.perf_counter()
         with self._cond:
             self._counts["frames_received"] += 1
             self._recent_received.append(now)
@@ -225,6 +226,7 @@ class MapService:
                 self._drops["queue_full"] += 1
             self._queue.append(_Pending(bytes(data), now))
             self._cond.notify()
+        self.mapper.timings.add("ingest", time.perf_counter() - t0)
 
     def submit_pose(self, data: bytes) -> None:
         self._counts["poses_received"] += 1
@@ -271,6 +273,7 @@ class MapService:
         log.info("mapper thread stopped")
 
     def _handle(self, item: _Pending) -> None:
+        self.mapper.timings.add("queue_wait", time.monotonic() - item.received)
         t0 = time.perf_counter()
         try:
             msg = decode_frame(item.data)
@@ -279,6 +282,7 @@ class MapService:
             self._error("malformed", str(e))
             return
         pose = msg.pose
+        t_assoc = time.perf_counter()
         if pose is None:
             while True:
                 state, value = self.poses.lookup(msg.timestamp_ns)
@@ -291,12 +295,14 @@ class MapService:
                     return
                 self._serve_requests()
                 time.sleep(0.005)
+        self.mapper.timings.add("association", time.perf_counter() - t_assoc)
         frame = Frame(msg.frame_id, msg.timestamp, msg.color, msg.depth, pose, msg.intrinsics)
-        result = self.mapper.process(frame, read_seconds=time.perf_counter() - t0)
+        result = self.mapper.process(frame, read_seconds=t_assoc - t0)  # decoding is the frame's reading
         if result.mapped:
             now = time.monotonic()
             self._recent_mapped.append(now)
             self._delays.append(now - item.received)
+            self.mapper.timings.add("frame_delay", now - item.received)  # arrival to mapped
         else:
             self._error("dropped", f"frame {msg.frame_id}: {result.reason}")
 
