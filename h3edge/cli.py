@@ -8,6 +8,7 @@
     h3edge serve --profile P [--zenoh-config F] [--map-id ID] [--state-dir DIR] [--resume]
     h3edge sim publish SEQUENCE --rate HZ [--pose-rate HZ --jitter MS --frames N --embed-pose]
     h3edge query status|profile|mesh|render|save [--out FILE] [...]
+    h3edge profile report RUN_DIR|zenoh:[MAP-ID] [--vs OTHER] [--format table|markdown|json]
 Every zenoh-speaking command takes --zenoh-config FILE, --map-id ID and the endpoint overrides
 --mode, --connect EP, --listen EP, --no-multicast.
 """
@@ -213,6 +214,21 @@ def _cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_profile_report(args: argparse.Namespace) -> int:
+    from h3edge.serving.profile_report import load_document, report
+
+    conf = _zenoh_conf(args) if args.source.startswith("zenoh:") or (args.vs or "").startswith("zenoh:") else None
+    mid = args.map_id or "default"
+    try:
+        doc = load_document(args.source, conf, mid)
+        other = load_document(args.vs, conf, mid) if args.vs else None
+    except (OSError, ValueError, TimeoutError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(report(doc, other, args.format))
+    return 0
+
+
 def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
     g.add_argument("--zenoh-config", help="zenoh JSON5 config file (default: zenoh's defaults, peer mode)")
@@ -289,6 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
     _add_zenoh_args(sv)
     sv.set_defaults(func=_cmd_serve)
+
+    pr = sub.add_parser("profile", help="timing profiles").add_subparsers(dest="profile_command", required=True)
+    rp = pr.add_parser("report", help="per-component timing table of a run or a live service, optionally vs another")
+    rp.add_argument("source", help="run directory, profile.json, or zenoh:[MAP-ID] for a live service")
+    rp.add_argument("--vs", help="a second run / service to compare with (ratios other / this)")
+    rp.add_argument("--format", choices=["table", "markdown", "json"], default="table")
+    _add_zenoh_args(rp)
+    rp.set_defaults(func=_cmd_profile_report)
 
     q = sub.add_parser("query", help="ask a running service for status, profile, mesh, render or a checkpoint")
     q.add_argument("what", choices=["status", "profile", "mesh", "render", "save"])

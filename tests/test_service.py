@@ -118,8 +118,12 @@ def test_bad_mesh_request_gets_error_reply(served):
 
 
 def test_profile_query(served):
-    _, session, *_ = served
+    from h3edge.serving.profile_report import load_document, report
+
+    svc, session, *_ = served
     p = json.loads(query(session, KEYS.profile))
+    live = load_document("zenoh:test", svc.client_config())  # what `h3edge profile report zenoh:test` reads
+    assert live["profile"] == "service-test" and "pose association" in report(live)
     assert {"read", "priors", "keyframes", "training", "frame", "ingest", "queue_wait", "association",
             "frame_delay"} <= set(p["components"])
     assert "map training" in p["table"]

@@ -3,7 +3,8 @@
 DIR/mesh.ply (vertex colours), DIR/renders/ (held-out or training views: colour PNG, 16-bit depth
 PNG in mm, and a GT | render strip), DIR/metrics.json + .md (:func:`h3edge.eval.evaluate.evaluate`),
 DIR/timings.json + .md (per-component, per-frame), DIR/run.json (profile settings, map stats),
-DIR/decoders/{sdf,color}.onnx (the trained decoders, as queries run them).
+DIR/decoders/{sdf,color}.onnx (the trained decoders, as queries run them), DIR/profile.json (the
+timing profile ``h3edge profile report`` reads) and DIR/timings.jsonl (every duration).
 """
 
 from __future__ import annotations
@@ -79,6 +80,15 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     (out / "timings.json").write_text(json.dumps({"frames": mapper.frames_mapped, "components": summary,
                                                   "mapping_wall_s": map_s}, indent=1) + "\n")
     (out / "timings.md").write_text(timings_md + "\n")
+    with open(out / "timings.jsonl", "w") as f:  # every duration, one line per component
+        for name, values in mapper.timings.samples.items():
+            f.write(json.dumps({"component": name, "ms": [round(1000 * v, 3) for v in values]}) + "\n")
+    from h3edge.serving.profile_report import profile_document
+
+    stats = mapper.stats()
+    (out / "profile.json").write_text(json.dumps(profile_document(
+        profile.name, str(mapper.device), mapper.frames_mapped, summary, stats["memory_bytes"], stats["dropped"]),
+        indent=1) + "\n")
     run = {"sequence": str(seq.root), "profile": profile.name, "settings": dataclasses.asdict(settings),
            "frames_in": len(results), "stats": mapper.stats(), "mesh_vertices": len(mesh.vertices),
            "mesh_faces": len(mesh.faces), "mapping_wall_s": map_s}

@@ -77,6 +77,9 @@ def make_session(model: bytes, cfg: InferenceConfig = InferenceConfig()) -> ort.
     if cfg.threads > 0:
         so.intra_op_num_threads = cfg.threads
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # no busy-waiting between runs: the hash kernels (numba / OpenMP) and training share the cores,
+    # and spinning pool threads slowed mesh extraction 1.8x (docs/bench_inference.md)
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     wanted = [p.strip() for p in cfg.providers.split(",") if p.strip()]
     available = ort.get_available_providers()
     providers = [p for p in wanted if p in available] or ["CPUExecutionProvider"]

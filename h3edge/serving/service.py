@@ -424,13 +424,18 @@ class MapService:
                 "resumed_from": self.resumed_from, "mapper_alive": self.alive}
 
     def profile(self) -> dict:
+        """The timing profile document (:mod:`h3edge.serving.profile_report`) plus a markdown table."""
         from h3edge.mapping.timing import format_timings
+        from h3edge.serving.profile_report import profile_document
 
         summary = self.mapper.timings.summary()
         n = self.mapper.frames_mapped
-        return {"profile": self.profile_name, "device": str(self.mapper.device), "frames": n, "components": summary,
-                "table": format_timings(summary, f"per-component timings ({self.profile_name}, {self.mapper.device})",
-                                        frames=n)}
+        st = self.status()
+        doc = profile_document(self.profile_name, str(self.mapper.device), n, summary,
+                               st["memory"]["parts_bytes"], st["dropped"])
+        doc["table"] = format_timings(summary, f"per-component timings ({self.profile_name}, {self.mapper.device})",
+                                      frames=n)
+        return doc
 
     def mesh(self, fmt: str = "ply", resolution: int | None = None, aabb: list | None = None) -> bytes:
         if fmt not in ("ply", "glb", "obj"):
