@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 import torch
 
+from h3edge.bench.tables import median_time
 from h3edge.geometry.camera import backproject
 from h3edge.mapping.hashgrid import HashGrid, HashGridSpec, corner_indices_torch
 from h3edge.sim.make import SimSpec
@@ -54,16 +54,6 @@ def paper_specs(bound: np.ndarray) -> dict[str, HashGridSpec]:
     return {"geometry": HashGridSpec(4, 2, 19, base, 2.0), "texture": HashGridSpec(4, 2, 19, base, 3.0)}
 
 
-def _time(fn, repeats: int) -> float:
-    fn()  # warm-up (JIT compile, allocator)
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
-
-
 def run(n_points: int, repeats: int) -> dict:
     bound = np.stack([np.zeros(3) - 0.2, ROOM_SIZE + 0.2])
     x = torch.from_numpy(ray_points(n_points))
@@ -86,8 +76,8 @@ def run(n_points: int, repeats: int) -> dict:
                 grid.take_sparse_grad()
             return step
 
-        t = {"plain": _time(plain, repeats), "torch": _time(ours(grids["torch"]), repeats),
-             "numba": _time(ours(grids["numba"]), repeats)}
+        t = {"plain": median_time(plain, repeats), "torch": median_time(ours(grids["torch"]), repeats),
+             "numba": median_time(ours(grids["numba"]), repeats)}
         for variant, sec in t.items():
             results["rows"].append({"encoding": name, "variant": variant, "ms": 1000 * sec,
                                     "mpts_per_s": len(x) / sec / 1e6, "speedup_vs_plain": t["plain"] / sec})

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from h3edge.bench.tables import median_time
 from h3edge.config import load_profile
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import Mapper
@@ -26,15 +27,6 @@ from h3edge.serving.checkpoint import read_checkpoint, write_checkpoint
 from h3edge.sim.make import PRESETS, ensure_scene
 
 log = logging.getLogger(__name__)
-
-
-def _median_time(fn, repeats: int) -> float:
-    out = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t)
-    return float(np.median(out))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,24 +65,21 @@ def main(argv: list[str] | None = None) -> int:
                             ("colour decoder, 1M rows", m.field.color_mlp, m.field.texture.out_dim)):
         x = torch.randn(1_000_000, n_in, generator=g) * 0.3
         ort_mlp = OrtMLP(models["sdf" if "SDF" in name else "color"], cfg)
-        ort_mlp(x[:1000])
 
         def run_torch():
             with torch.no_grad():
                 mlp(x)
 
-        te = _median_time(run_torch, args.repeats)
-        to = _median_time(lambda: ort_mlp(x), args.repeats)
+        te = median_time(run_torch, args.repeats)
+        to = median_time(lambda: ort_mlp(x), args.repeats)
         rows.append((name, te, to))
     # full mesh at 2 cm and 640x480 renders
-    eager.mesh(5)
-    onnx_view.mesh(5)
-    te = _median_time(lambda: eager.mesh(5), args.repeats)
-    to = _median_time(lambda: onnx_view.mesh(5), args.repeats)
+    te = median_time(lambda: eager.mesh(5), args.repeats)
+    to = median_time(lambda: onnx_view.mesh(5), args.repeats)
     rows.append(("mesh extraction, 2 cm", te, to))
     views = [seq[i] for i in (50, 150, 250)]
-    te = float(np.median([_median_time(lambda f=f: eager.render(f.intrinsics, f.pose), 1) for f in views]))
-    to = float(np.median([_median_time(lambda f=f: onnx_view.render(f.intrinsics, f.pose), 1) for f in views]))
+    te = float(np.median([median_time(lambda f=f: eager.render(f.intrinsics, f.pose), 1, False) for f in views]))
+    to = float(np.median([median_time(lambda f=f: onnx_view.render(f.intrinsics, f.pose), 1, False) for f in views]))
     rows.append(("render 640x480", te, to))
     lines = [f"### query inference: PyTorch eager vs onnxruntime ({', '.join(providers)}), {args.profile}", "",
              "| what | eager [s] | onnxruntime [s] | speed-up |", "|---|---|---|---|"]

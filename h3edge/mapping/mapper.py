@@ -81,9 +81,8 @@ class FrameResult:
 
 @dataclass
 class StoredFrame:
-    """The pixels of a frame that training draws rays from: the current frame keeps every valid
-    pixel; a keyframe keeps a fixed random subset of them (``keyframes.stored_pixels``), which is
-    how the keyframe store stays compressed (~11 bytes per kept pixel instead of the full image)."""
+    """What a keyframe keeps for training to draw rays from: a fixed random subset of its valid
+    pixels (``keyframes.stored_pixels``), ~11 bytes per kept pixel instead of the full images."""
 
     pix: np.ndarray  # int32 flat pixel indices (row-major) of valid-depth pixels
     rgb: np.ndarray  # uint8 (n, 3) colour at those pixels
@@ -91,22 +90,37 @@ class StoredFrame:
     pose: np.ndarray
     intrinsics: Intrinsics
 
-    @classmethod
-    def from_images(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intr: Intrinsics,
-                    valid: np.ndarray) -> "StoredFrame":
-        return cls(valid, color.reshape(-1, 3)[valid], depth.reshape(-1)[valid], pose, intr)
-
-    def subset(self, n: int, rng: np.random.Generator) -> "StoredFrame":
-        """At most ``n`` of the pixels, drawn without replacement (0: all of them)."""
-        if n <= 0 or len(self.pix) <= n:
-            return self
-        keep = np.sort(rng.choice(len(self.pix), n, replace=False))
-        return StoredFrame(self.pix[keep].copy(), self.rgb[keep].copy(), self.depth[keep].copy(), self.pose,
-                           self.intrinsics)
+    def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(pixel indices, colours, depths) of the ``j``-th kept pixels."""
+        return self.pix[j], self.rgb[j], self.depth[j]
 
     @property
     def nbytes(self) -> int:
         return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16
+
+
+@dataclass
+class ImageFrame:
+    """The frame being mapped: its images and valid pixels, read only where rays are drawn (no
+    per-frame gather of every valid pixel)."""
+
+    color: np.ndarray  # uint8 (H, W, 3)
+    depth: np.ndarray  # float32 (H, W), cleaned
+    pose: np.ndarray
+    intrinsics: Intrinsics
+    pix: np.ndarray  # int32 flat indices of the valid-depth pixels
+
+    def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        p = self.pix[j]
+        return p, self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p]
+
+    def subset(self, n: int, rng: np.random.Generator) -> StoredFrame:
+        """A keyframe's store: at most ``n`` of the valid pixels, drawn without replacement (0: all)."""
+        p = self.pix
+        if 0 < n < len(p):
+            p = p[np.sort(rng.choice(len(p), n, replace=False))]
+        return StoredFrame(p.copy(), self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p], self.pose,
+                           self.intrinsics)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -213,7 +227,7 @@ class Mapper:
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         if len(valid) < self.cfg.min_valid_fraction * depth.size:
             return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
-        stored = StoredFrame.from_images(frame.color, depth, pose, frame.intrinsics, valid)
+        current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid)
         self.timings.add("read", time.perf_counter() - t0 + read_seconds)
 
         with self.timings.time("priors"):
@@ -241,13 +255,13 @@ class Mapper:
                     _, cnt, g = voxel_gradient_stats(vox, grad.reshape(-1)[sub], float(stride))
                     scores = np.maximum(cnt * cnt * g, 1.0)
                 self.keyframes.insert(frame.index, observed, scores,
-                                       payload=stored.subset(self.settings.keyframes.stored_pixels, self.rng))
+                                       payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
             picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
 
         losses: dict = {}
         with self.timings.time("training"):
             for kfs in picks:
-                rays = self._sample_rays([stored] + [k.payload for k in kfs])
+                rays = self._sample_rays([current] + [k.payload for k in kfs])
                 losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.generator,
                                     self.prior_opt)
                 if self.step_hook is not None:
@@ -264,16 +278,16 @@ class Mapper:
             self.field.texture.set_warps(unpack(self.voxels.voxel_keys), self.settings.voxels.voxel_size,
                                          classes, self.patterns.dirs, self.patterns.n_dirs)
 
-    def _sample_rays(self, frames: list[StoredFrame]) -> RayBatch:
+    def _sample_rays(self, frames: list[ImageFrame | StoredFrame]) -> RayBatch:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
         o, d, z, c = [], [], [], []
         for f in frames:
-            j = self.rng.integers(0, len(f.pix), n_each)
-            cam = self._camera_rays(f.intrinsics)[f.pix[j]]
+            pix, rgb, depth = f.sample(self.rng.integers(0, len(f.pix), n_each))
+            cam = self._camera_rays(f.intrinsics)[pix]
             d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
             o.append(np.broadcast_to(f.pose[:3, 3].astype(np.float32), (n_each, 3)))
-            z.append(f.depth[j])
-            c.append(f.rgb[j])
+            z.append(depth)
+            c.append(rgb)
         dev = self.device
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731
         return RayBatch(t(o), t(d), t(z), t(c) / 255.0)

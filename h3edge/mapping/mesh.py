@@ -30,14 +30,20 @@ def _lattice(ijk: np.ndarray, origin: np.ndarray, shape: tuple, r: int) -> np.nd
     return np.flatnonzero(mark)
 
 
+def _region(voxel_keys: np.ndarray, voxel_size: float, aabb: np.ndarray | None) -> np.ndarray:
+    """Integer coordinates of the voxels to mesh: all of them, or those inside ``aabb``."""
+    ijk = unpack(voxel_keys)
+    if aabb is None:
+        return ijk
+    lo = np.floor(np.asarray(aabb[0]) / voxel_size).astype(np.int64)
+    hi = np.floor(np.asarray(aabb[1]) / voxel_size).astype(np.int64)
+    return ijk[np.all((ijk >= lo) & (ijk <= hi), axis=1)]
+
+
 def working_bytes(voxel_keys: np.ndarray, voxel_size: float, resolution: int, aabb: np.ndarray | None = None) -> int:
     """Peak scratch memory of :func:`extract_mesh` (the SDF volume over the region's bounding box,
     its masks, the lattice index), before the mesh itself: what a caller checks against a budget."""
-    ijk = unpack(voxel_keys)
-    if aabb is not None:
-        lo = np.floor(np.asarray(aabb[0]) / voxel_size).astype(np.int64)
-        hi = np.floor(np.asarray(aabb[1]) / voxel_size).astype(np.int64)
-        ijk = ijk[np.all((ijk >= lo) & (ijk <= hi), axis=1)]
+    ijk = _region(voxel_keys, voxel_size, aabb)
     if len(ijk) == 0:
         return 0
     cells = int(np.prod((ijk.max(0) - ijk.min(0) + 1) * resolution + 1))
@@ -48,11 +54,7 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
                  color_fn: ColorFn | None = None, batch: int = 262_144,
                  aabb: np.ndarray | None = None) -> trimesh.Trimesh:
     """Zero level set of ``sdf_fn`` inside the voxels ``voxel_keys`` (optionally cut to ``aabb``)."""
-    ijk = unpack(voxel_keys)
-    if aabb is not None:
-        lo = np.floor(np.asarray(aabb[0]) / voxel_size).astype(np.int64)
-        hi = np.floor(np.asarray(aabb[1]) / voxel_size).astype(np.int64)
-        ijk = ijk[np.all((ijk >= lo) & (ijk <= hi), axis=1)]
+    ijk = _region(voxel_keys, voxel_size, aabb)
     if len(ijk) == 0:
         return trimesh.Trimesh()
     r = resolution

@@ -311,8 +311,9 @@ class MapService:
         """On the mapper thread, between training steps: hand out map copies, capture saves."""
         self.heartbeat = time.monotonic()
         with self._req_lock:
-            views, self._view_requests = self._view_requests, []
-            saves, self._save_requests = self._save_requests, []
+            views, saves = list(self._view_requests), list(self._save_requests)
+            self._view_requests.clear()  # cleared in place: _ask holds these lists
+            self._save_requests.clear()
         if views:
             try:
                 if self.mapper.field is None:
@@ -331,28 +332,26 @@ class MapService:
             else:
                 self._checkpoint_async(saves)
 
-    def view(self) -> MapView:
-        """A frozen copy of the map, at most ``snapshot_max_age_s`` old."""
-        if self._view is not None and time.monotonic() - self._view_time < self.cfg.snapshot_max_age_s:
-            return self._view
+    def _ask(self, requests: list[Future]) -> object:
+        """Queue a request for the mapper thread and wait for its answer (served here when no
+        mapper thread runs)."""
         fut: Future = Future()
         with self._req_lock:
-            self._view_requests.append(fut)
-        with self._cond:
-            self._cond.notify()
-        if not self.alive:
-            self._serve_requests()  # no mapper thread (not started or stopped): copy here
-        return fut.result(self.cfg.query_timeout_s)
-
-    def save(self) -> dict:
-        fut: Future = Future()
-        with self._req_lock:
-            self._save_requests.append(fut)
+            requests.append(fut)
         with self._cond:
             self._cond.notify()
         if not self.alive:
             self._serve_requests()
         return fut.result(self.cfg.query_timeout_s)
+
+    def view(self) -> MapView:
+        """A frozen copy of the map, at most ``snapshot_max_age_s`` old."""
+        if self._view is not None and time.monotonic() - self._view_time < self.cfg.snapshot_max_age_s:
+            return self._view
+        return self._ask(self._view_requests)
+
+    def save(self) -> dict:
+        return self._ask(self._save_requests)
 
     def _capture(self) -> tuple[dict, dict]:
         meta, arrays = mapper_state(self.mapper)
