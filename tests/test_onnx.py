@@ -33,6 +33,19 @@ def test_random_field_parity():
         assert out.shape == ref.shape and (out - ref).abs().max() <= 1e-4, name
 
 
+def test_batched_and_padded_runs_match_one_run():
+    """Row batches (and the fixed-shape padding TensorRT gets) give the one-run answer, row for row."""
+    f = Field(FieldConfig(geo_log2_table=10, tex_log2_table=10), np.array([[0.0] * 3, [4.0] * 3]), 0.1)
+    model = export_decoders(f)["color"]
+    x = torch.randn(5003, f.texture.out_dim, generator=torch.Generator().manual_seed(1))
+    one = OrtMLP(model, ONNX)(x)
+    batched = OrtMLP(model, InferenceConfig(threads=1, batch_rows=1000))
+    close = lambda a, b: a.shape == b.shape and (a - b).abs().max() <= 1e-6  # noqa: E731
+    assert close(batched(x), one)
+    batched.pad = True  # as with the TensorRT provider
+    assert close(batched(x), one) and close(batched(x[:7]), one[:7])
+
+
 def test_unsupported_layer_is_refused():
     with pytest.raises(TypeError, match="Tanh"):
         mlp_to_onnx(torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.Tanh()), "x")

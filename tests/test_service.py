@@ -17,6 +17,8 @@ from h3edge.io.protocol import FrameMessage, PoseMessage, decode_frame, encode_f
 from h3edge.io.replica import ReplicaSequence
 from h3edge.serving.checkpoint import read_checkpoint
 from h3edge.serving.demo import ServiceProcess, wait_drained
+from h3edge.mapping.timing import read_durations
+from h3edge.serving.profile_report import load_document
 from h3edge.serving.transport import Keys, RemoteError, open_session, publish_sequence, query, wait_for_service
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
@@ -185,6 +187,12 @@ def test_kill_and_resume(served, tmp_path):
     info = json.loads(query(session, KEYS.save, timeout=120))
     header, _ = read_checkpoint(Path(info["path"]))
     assert header["frames_mapped"] == info["frames_mapped"] > 0 and header["map_id"] == "test"
+    # the map's state directory is a run directory: profile.json with each checkpoint, every duration logged
+    doc = load_document(str(state / "test"))
+    assert doc["frames"] == info["frames_mapped"] and doc["profile"] == "service-test"
+    durations = read_durations(state / "test" / "timings.jsonl")
+    assert {"ingest", "queue_wait", "association", "frame_delay", "training"} <= set(durations)
+    assert len(durations["training"]) == doc["components"]["training"]["count"] > 0
     before = json.loads(query(session, KEYS.status))
     svc.kill()  # no chance to write anything more
     time.sleep(0.5)

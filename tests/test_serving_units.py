@@ -168,3 +168,31 @@ def test_deploy_files():
         assert line in unit
     directives = [ln.split("=")[0] for ln in unit.splitlines() if ln and not ln.startswith("#")]
     assert "PrivateDevices" not in directives and "MemoryDenyWriteExecute" not in directives
+
+
+def test_duration_log_rotates_and_survives_write_errors(tmp_path, monkeypatch):
+    from h3edge.mapping.timing import DurationLog, Timings, read_durations
+
+    path = tmp_path / "run" / "timings.jsonl"
+    log_ = DurationLog(path, max_bytes=2000)
+    t = Timings(window=5, sink=log_)
+    for i in range(100):
+        t.add("training", 0.001 * i)
+    log_.flush()
+    assert path.exists() and path.with_name("timings.jsonl.1").exists()
+    assert path.stat().st_size <= 2000 and path.with_name("timings.jsonl.1").stat().st_size <= 2000
+    kept = read_durations(path)["training"]
+    assert 20 < len(kept) < 100 and kept[-1] == pytest.approx(99.0)  # the newest survive rotation
+    assert t.counts["training"] == 100 and len(t.samples["training"]) == 5  # bounded memory
+    with open(path, "a") as f:
+        f.write('{"unix": 1, "compo')  # a line cut short by a crash is skipped
+    assert read_durations(path)["training"] == kept
+
+    def full(*_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(log_._f, "write", full)
+    t.add("training", 0.5)  # logged once, never raised
+    t.add("training", 0.5)
+    assert log_._f is None and t.counts["training"] == 102
+    log_.close()

@@ -95,3 +95,29 @@ def test_ids_are_stable_as_the_map_grows():
     corners = unpack(vm.vertex_keys[vm.voxel_vertices])
     assert np.array_equal(corners - unpack(vm.voxel_keys)[:, None, :], np.broadcast_to(CORNERS, corners.shape))
     assert len(np.unique(vm.vertex_keys)) == len(vm.vertex_keys) == len(vm.priors)
+
+
+def test_dense_lookup_matches_locate_on_faces_and_inside():
+    """The renderer's and mesher's fused lookup gives the training lookup's prior and inside mask,
+    including lattice points on the faces of the allocated region (which ``floor`` alone misses)."""
+    from h3edge.mapping.render import PriorLookup
+
+    vm = VoxelMap(VoxelConfig(min_points=3, neighbour_margin=0.4))
+    vm.allocate(wall_depth(), INTR, POSE)
+    rng = np.random.default_rng(0)
+    ijk = unpack(vm.voxel_keys)
+    vs = vm.cfg.voxel_size
+    inner = (ijk[rng.integers(0, len(ijk), 500)] + rng.random((500, 3))) * vs
+    lattice = (ijk[rng.integers(0, len(ijk), 500)] * 5 + rng.integers(0, 6, (500, 3))) * (vs / 5)  # 2 cm lattice, faces incl.
+    outside = rng.uniform(-3, 3, (500, 3))
+    pts = np.concatenate([inner, lattice, outside])
+    sdf, vox = PriorLookup(vm)(pts)
+    ref_vox, _ = vm.locate(pts)
+    ref_sdf, ref_inside = vm.coarse_sdf(torch.from_numpy(pts.astype(np.float32)))
+    assert np.array_equal(vox >= 0, ref_inside.numpy()) and np.array_equal(vox >= 0, ref_vox >= 0)
+    assert (vox[500:1000] >= 0).all()  # every lattice point of an allocated voxel is found
+    assert np.abs(sdf - ref_sdf.detach().double().numpy()).max() < 1e-4
+    # a point on a face belongs to a voxel that contains it
+    g = ijk[vox[vox >= 0]]
+    rel = pts[vox >= 0] / vs - g
+    assert (rel > -1e-6).all() and (rel < 1 + 1e-6).all()

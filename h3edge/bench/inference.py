@@ -73,6 +73,14 @@ def main(argv: list[str] | None = None) -> int:
         te = median_time(run_torch, args.repeats)
         to = median_time(lambda: ort_mlp(x), args.repeats)
         rows.append((name, te, to))
+        b = cfg.batch_rows  # how much of the gain is the batching alone: torch run in the same row batches
+
+        def run_torch_batched():
+            with torch.no_grad():
+                for s in range(0, len(x), b):
+                    mlp(x[s:s + b])
+
+        rows.append((f"{name}, torch also in {b}-row batches", median_time(run_torch_batched, args.repeats), to))
     # full mesh at 2 cm and 640x480 renders
     te = median_time(lambda: eager.mesh(5), args.repeats)
     to = median_time(lambda: onnx_view.mesh(5), args.repeats)

@@ -99,7 +99,37 @@ def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
     return out
 
 @nb.njit(parallel=True, cache=True)
-def prior_at(pts, grid, g0, vs, vv, priors, sdf, vox):
+def locate_prior(pts, grid, g0, vs, vv, priors, eps, sdf, vox):
+    """Voxel id (-1 outside) and trilinear prior of points (metres) like ``VoxelMap.locate``: a point
+    within ``eps`` voxels of a face of an unallocated voxel belongs to the allocated one across it
+    (priors are shared at vertices, so the value is the same from either side)."""
+    nx, ny, nz = grid.shape
     for i in nb.prange(pts.shape[0]):
-        vox[i], sdf[i] = trilinear(pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs, grid, g0, vv, priors)
-
+        px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
+        v, s = trilinear(px, py, pz, grid, g0, vv, priors)
+        if v < 0:
+            fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+            ax, ay, az = round(px), round(py), round(pz)
+            on_x, on_y, on_z = abs(px - ax) < eps, abs(py - ay) < eps, abs(pz - az) < eps
+            for c in range(1, 8):
+                bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
+                if (bx and not on_x) or (by and not on_y) or (bz and not on_z):
+                    continue
+                # the voxel below the face along each chosen axis (floor's voxel is above or below it)
+                cx = (ax - 1 if fx >= ax else ax) if bx else fx
+                cy = (ay - 1 if fy >= ay else ay) if by else fy
+                cz = (az - 1 if fz >= az else az) if bz else fz
+                ix, iy, iz = int(cx) - g0[0], int(cy) - g0[1], int(cz) - g0[2]
+                if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz) or grid[ix, iy, iz] < 0:
+                    continue
+                ux = min(max(px - cx, 0.0), 1.0)
+                uy = min(max(py - cy, 0.0), 1.0)
+                uz = min(max(pz - cz, 0.0), 1.0)
+                v = grid[ix, iy, iz]
+                s = 0.0
+                for k in range(8):
+                    w = (ux if k & 1 else 1.0 - ux) * (uy if (k >> 1) & 1 else 1.0 - uy) * \
+                        (uz if (k >> 2) & 1 else 1.0 - uz)
+                    s += w * priors[vv[v, k]]
+                break
+        vox[i], sdf[i] = v, s

@@ -20,16 +20,6 @@ SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) metres -> SDF (N,), 
 ColorFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) -> RGB (N, 3) in [0, 1]
 
 
-def _lattice(ijk: np.ndarray, origin: np.ndarray, shape: tuple, r: int) -> np.ndarray:
-    """Sorted flat indices (into ``shape``) of the lattice points of voxels ``ijk``, each once."""
-    local = np.stack(np.meshgrid(*[np.arange(r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    mark = np.zeros(int(np.prod(shape)), bool)  # a mark per point beats np.unique's sort by ~50x
-    for s in range(0, len(ijk), 8192):
-        lat = ((ijk[s:s + 8192] - origin) * r)[:, None, :] + local[None]
-        mark[np.ravel_multi_index(lat.reshape(-1, 3).T, shape)] = True
-    return np.flatnonzero(mark)
-
-
 def _region(voxel_keys: np.ndarray, voxel_size: float, aabb: np.ndarray | None) -> np.ndarray:
     """Integer coordinates of the voxels to mesh: all of them, or those inside ``aabb``."""
     ijk = unpack(voxel_keys)
@@ -57,22 +47,27 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
     ijk = _region(voxel_keys, voxel_size, aabb)
     if len(ijk) == 0:
         return trimesh.Trimesh()
+    from h3edge.mapping import _mesh_kernels as k
+
     r = resolution
     origin = ijk.min(0)
-    shape = tuple((ijk.max(0) - origin + 1) * r + 1)
+    shape = tuple(int(v) for v in (ijk.max(0) - origin + 1) * r + 1)
     cell = voxel_size / r
-    to_pts = lambda f: (np.stack(np.unravel_index(f, shape), -1) + origin * r) * cell  # noqa: E731
-    vol = np.ones(shape, np.float32)  # unevaluated = outside
-    flat = _lattice(ijk, origin, shape, r)  # lattice points of the allocated voxels, shared ones once
-    for s in range(0, len(flat), batch):
-        vol.reshape(-1)[flat[s:s + batch]] = sdf_fn(to_pts(flat[s:s + batch]))
-    # a cube is meshed only if it lies in an allocated voxel. scikit-image's mask[p] enables the
-    # cube whose *upper* corner is p (checked empirically, see tests/test_mesh.py), hence the +1.
+    # lattice points of the allocated voxels (shared ones once; a mark per point beats np.unique's
+    # sort ~50x) and the cubes inside them: scikit-image's mask[p] enables the cube whose *upper*
+    # corner is p (checked empirically, see tests/test_mesh.py), so nothing is meshed in unobserved space
+    points = np.zeros(int(np.prod(shape)), bool)
     mask = np.zeros(shape, bool)
-    local = np.stack(np.meshgrid(*[np.arange(r)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    for s in range(0, len(ijk), 8192):  # in chunks: the cube list would be 24 r^3 bytes per voxel
-        c = (((ijk[s:s + 8192] - origin) * r)[:, None, :] + local[None]).reshape(-1, 3) + 1
-        mask[c[:, 0], c[:, 1], c[:, 2]] = True
+    k.mark(np.ascontiguousarray((ijk - origin) * r), r, np.array(shape, np.int64), points, mask.reshape(-1))
+    flat = np.flatnonzero(points)
+    del points
+    vol = np.ones(shape, np.float32)  # unevaluated = outside
+    pts = np.empty((min(batch, len(flat)), 3), np.float64)
+    origin_r = (origin * r).astype(np.int64)
+    for s in range(0, len(flat), batch):
+        f = flat[s:s + batch]
+        k.to_points(f, np.array(shape, np.int64), origin_r, cell, pts[:len(f)])
+        vol.reshape(-1)[f] = sdf_fn(pts[:len(f)])
     if not (vol[mask].min() < 0 < vol[mask].max()):
         return trimesh.Trimesh()
     verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(cell,) * 3, mask=mask, allow_degenerate=False)

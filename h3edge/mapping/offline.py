@@ -23,7 +23,7 @@ from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.onnx_decoders import export_decoders
-from h3edge.mapping.timing import format_timings
+from h3edge.mapping.timing import DurationLog, format_timings
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,9 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     out.mkdir(parents=True, exist_ok=True)
     settings = settings or profile.map_settings()
     mapper = Mapper(settings)
+    (out / "timings.jsonl").write_text("")
+    durations = DurationLog(out / "timings.jsonl", max_bytes=1 << 40)  # every duration of the run
+    mapper.timings.sink = durations
     t0 = time.perf_counter()
     results = map_sequence(seq, mapper, frames, stride)
     map_s = time.perf_counter() - t0
@@ -74,15 +77,13 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
         (out / "decoders" / f"{name}.onnx").write_bytes(model)
     held = getattr(seq, "heldout", None)
     write_renders(mapper, held if held is not None and len(held) else seq, out / "renders")
+    durations.flush()
     summary = mapper.timings.summary()
     timings_md = format_timings(summary, f"per-component timings ({profile.name}, {mapper.device})",
                                 frames=mapper.frames_mapped)
     (out / "timings.json").write_text(json.dumps({"frames": mapper.frames_mapped, "components": summary,
                                                   "mapping_wall_s": map_s}, indent=1) + "\n")
     (out / "timings.md").write_text(timings_md + "\n")
-    with open(out / "timings.jsonl", "w") as f:  # every duration, one line per component
-        for name, values in mapper.timings.samples.items():
-            f.write(json.dumps({"component": name, "ms": [round(1000 * v, 3) for v in values]}) + "\n")
     from h3edge.serving.profile_report import profile_document
 
     stats = mapper.stats()
@@ -104,5 +105,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     run["tables"] = "\n\n".join(t for t in (metrics_md, format_timings(mapper.timings.summary(),
                                 f"per-component timings ({profile.name}, {mapper.device})",
                                 frames=mapper.frames_mapped)) if t)
+    durations.close()
+    mapper.timings.sink = None
     run["mapper"] = mapper
     return run

@@ -29,6 +29,9 @@ class InferenceConfig:
     decoders: str = "onnx"  # onnx | torch: how queries (mesh, render) evaluate the decoders
     providers: str = "CPUExecutionProvider"  # onnxruntime execution providers, in order of preference
     threads: int = 0  # onnxruntime intra-op threads (0: onnxruntime's default, one per core)
+    # rows per onnxruntime run: on a CPU, 8k rows keep a 64-wide layer's activations (2 MB) in
+    # cache; one run over 1M rows was 2x slower (docs/bench_inference.md). GPUs want large batches.
+    batch_rows: int = 8192
 
 
 def _layers(module: nn.Module) -> list[nn.Module]:
@@ -93,6 +96,10 @@ class OrtMLP(nn.Module):
         super().__init__()
         self.model = model
         self.session = make_session(model, cfg)
+        self.batch_rows = max(1, cfg.batch_rows)
+        self.n_out = int(self.session.get_outputs()[0].shape[1])
+        # TensorRT builds an engine per input shape: every run gets the same (padded) shape
+        self.pad = "TensorrtExecutionProvider" in self.providers
 
     @property
     def providers(self) -> list[str]:
@@ -100,7 +107,15 @@ class OrtMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xn = np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float32)
-        y = self.session.run(["y"], {"x": xn})[0]
+        b = self.batch_rows
+        if len(xn) <= b and not self.pad:
+            return torch.from_numpy(self.session.run(["y"], {"x": xn})[0]).to(x.device)
+        y = np.empty((len(xn), self.n_out), np.float32)
+        for s in range(0, len(xn), b):
+            part = xn[s:s + b]
+            if self.pad and len(part) < b:
+                part = np.concatenate([part, np.zeros((b - len(part), xn.shape[1]), np.float32)])
+            y[s:s + b] = self.session.run(["y"], {"x": part})[0][:min(b, len(xn) - s)]
         return torch.from_numpy(y).to(x.device)
 
 

@@ -46,7 +46,7 @@ class RenderConfig:
 def _march_kernel():
     from h3edge.mapping import _march_kernels as k
 
-    return k.march, k.prior_at
+    return k.march, k.locate_prior
 
 
 def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig,
@@ -67,10 +67,13 @@ def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderCon
 
 
 class PriorLookup:
-    """No-grad prior SDF and voxel ids at points through a dense voxel-id grid (constant time per
-    point; the searchsorted lookup of :meth:`VoxelMap.locate` is what training uses)."""
+    """No-grad prior SDF (truncation units) and voxel ids at points through a dense voxel-id grid:
+    constant time per point, one fused parallel pass, the same answer as :meth:`VoxelMap.locate`
+    + :meth:`VoxelMap.coarse_sdf` (points on a face of the allocated region included), which
+    training uses with its searchsorted lookups."""
 
-    def __init__(self, voxels):
+    def __init__(self, voxels, eps: float = 1e-5):
+        self.eps = eps
         self.g0, self.grid = voxels.dense_index()
         self.g0 = self.g0.astype(np.int64)
         self.vs = voxels.cfg.voxel_size
@@ -82,7 +85,7 @@ class PriorLookup:
         vox = np.empty(len(pts), np.int64)
         if len(self.vv):
             _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.grid, self.g0, self.vs, self.vv,
-                               self.priors, sdf, vox)
+                               self.priors, self.eps, sdf, vox)
         else:
             sdf[:], vox[:] = 0, -1
         return sdf, vox

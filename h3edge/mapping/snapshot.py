@@ -19,7 +19,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.field import Field
 from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.onnx_decoders import InferenceConfig, OrtMLP, export_decoders
-from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.render import MapRenderer, PriorLookup, RenderConfig
 from h3edge.mapping.voxels import VoxelMap
 
 
@@ -77,14 +77,15 @@ class MapView:
         return self.voxels.device
 
     @torch.no_grad()
-    def sdf_np(self, pts: np.ndarray) -> np.ndarray:
-        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        return self.field.sdf(p, self.voxels)[0].cpu().numpy()
+    def sdf_np(self, pts: np.ndarray, lookup: PriorLookup | None = None) -> np.ndarray:
+        """SDF (truncation units) at points (N, 3) metres; 0 outside the allocated voxels."""
+        return self.banded_sdf_np(pts, np.inf, lookup)
 
     @torch.no_grad()
-    def color_np(self, pts: np.ndarray) -> np.ndarray:
+    def color_np(self, pts: np.ndarray, lookup: PriorLookup | None = None) -> np.ndarray:
+        vox = (lookup or PriorLookup(self.voxels))(pts)[1]
         p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        return self.field.color(p, self.voxels.voxel_ids(p)).cpu().numpy()
+        return self.field.color(p, torch.from_numpy(vox).to(self.device)).cpu().numpy()
 
     def renderer(self) -> MapRenderer:
         return MapRenderer(self.field, self.voxels, self.beta, self.render_cfg)
@@ -94,20 +95,19 @@ class MapView:
         return self.renderer().render(intr, c2w)
 
     @torch.no_grad()
-    def banded_sdf_np(self, pts: np.ndarray, margin: float) -> np.ndarray:
+    def banded_sdf_np(self, pts: np.ndarray, margin: float, lookup: PriorLookup | None = None) -> np.ndarray:
         """SDF with the residual evaluated only where |prior| < ``margin`` (truncation units); the
         prior alone elsewhere (same sign there while the residual stays under ``margin``). Points
-        are located once for both."""
-        p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        located = self.voxels.locate(pts)
-        prior, inside = self.voxels.coarse_sdf(p, located)
-        near = torch.nonzero(inside & (prior.abs() < margin)).squeeze(1)
-        out = prior.clone()
+        are located and their priors read in one pass over a dense voxel-id grid (``lookup``:
+        a :class:`PriorLookup` of this view's voxels, built here when not given)."""
+        prior, vox = (lookup or PriorLookup(self.voxels))(pts)
+        out = prior.astype(np.float32)
+        near = np.flatnonzero((vox >= 0) & (np.abs(prior) < margin))
         if len(near):
-            sel = near.cpu().numpy()
-            sub = (located[0][sel], located[1][sel])
-            out[near] = self.field.sdf(p[near], self.voxels, sub, (prior[near], inside[near]))[0]
-        return out.cpu().numpy()
+            p = torch.from_numpy(pts[near].astype(np.float32)).to(self.device)
+            known = (torch.from_numpy(out[near]).to(self.device), torch.ones(len(near), dtype=torch.bool, device=self.device))
+            out[near] = self.field.sdf(p, self.voxels, prior=known)[0].cpu().numpy()
+        return out
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
              prior_margin: float | None = 1.0) -> trimesh.Trimesh:
@@ -116,6 +116,8 @@ class MapView:
         surface (None: everywhere), where the zero crossing can be."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
-        sdf = self.sdf_np if prior_margin is None else (lambda x: self.banded_sdf_np(x, prior_margin))
-        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, sdf, resolution or self.mesh_resolution,
-                            self.color_np if color else None, aabb=aabb)
+        lookup = PriorLookup(self.voxels)
+        margin = np.inf if prior_margin is None else prior_margin
+        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup),
+                            resolution or self.mesh_resolution,
+                            (lambda x: self.color_np(x, lookup)) if color else None, aabb=aabb)

@@ -47,6 +47,7 @@ from h3edge.mapping.onnx_decoders import InferenceConfig, export_decoders
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.mapping.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
 from h3edge.serving.checkpoint import CHECKPOINT_NAME, CheckpointError, read_checkpoint, write_checkpoint
 
@@ -67,6 +68,7 @@ class ServiceConfig:
     max_render_pixels: int = 1280 * 960  # render requests above this are refused
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
     query_timeout_s: float = 60.0
+    timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
 
 
 class QueryError(ValueError):
@@ -126,6 +128,13 @@ class MapService:
         if resume:
             self._resume()
         self.mapper.step_hook = self._serve_requests
+        self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
+        self.durations: DurationLog | None = None
+        try:
+            self.durations = DurationLog(self.run_dir / "timings.jsonl", cfg.timings_log_mb << 20)
+            self.mapper.timings.sink = self.durations
+        except OSError as e:
+            log.error("no timing log in %s: %s", self.run_dir, e)
         self._queue: collections.deque[_Pending] = collections.deque()
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -205,6 +214,10 @@ class MapService:
             self._writer.join(timeout)
         if checkpoint and self.mapper.field is not None:
             self._write(*self._capture())
+        else:
+            self._write_profile()
+        if self.durations is not None:
+            self.durations.close()
         for fut in self._view_requests + self._save_requests:
             if not fut.done():
                 fut.set_exception(QueryError("service stopping"))
@@ -369,6 +382,7 @@ class MapService:
                     "seconds": round(time.perf_counter() - t0, 3), "unix": time.time()}
             self.last_checkpoint = info
             self.mapper.timings.add("checkpoint", time.perf_counter() - t0)
+            self._write_profile()
             log.info("checkpoint: %d frames, %.1f MB in %.2f s -> %s", info["frames_mapped"], size / 1e6,
                      info["seconds"], self.checkpoint_path)
             for f in futures or []:
@@ -377,6 +391,20 @@ class MapService:
             self._error("checkpoint", f"{type(e).__name__}: {e}")
             for f in futures or []:
                 f.set_exception(QueryError(f"checkpoint failed: {e}"))
+
+    def _write_profile(self) -> None:
+        """``profile.json`` beside the checkpoint (``h3edge profile report <state_dir>/<map_id>``) and
+        the timing log flushed: with every checkpoint and at stop. Failures are logged only."""
+        try:
+            doc = self.profile()
+            doc.pop("table", None)
+            tmp = self.run_dir / "profile.json.tmp"
+            tmp.write_text(json.dumps(doc, indent=1) + "\n")
+            tmp.replace(self.run_dir / "profile.json")
+        except OSError as e:
+            log.error("cannot write %s: %s", self.run_dir / "profile.json", e)
+        if self.durations is not None:
+            self.durations.flush()
 
     def _checkpoint_async(self, futures: list[Future] | None = None) -> None:
         """Capture now (mapper thread), write on a writer thread (one at a time)."""
