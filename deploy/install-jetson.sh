@@ -37,3 +37,7 @@ systemctl daemon-reload
 systemctl enable --now h3edge.service
 systemctl --no-pager status h3edge.service | head -n 5
 echo "query it: /opt/h3edge/venv/bin/h3edge query status --zenoh-config /etc/h3edge/zenoh.json5"
+# the OAK camera source: installed, started only where the camera is (H3EDGE_OAK_ARGS in /etc/default/h3edge)
+install -m 0644 "$SRC/systemd/h3edge-oak.service" /etc/systemd/system/h3edge-oak.service
+systemd-analyze verify /etc/systemd/system/h3edge-oak.service || true
+echo "with an OAK attached: systemctl enable --now h3edge-oak.service"

@@ -153,6 +153,32 @@ def _cmd_sim_publish(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_camera_oak(args: argparse.Namespace) -> int:
+    """Check depthai and the device first (a one-line error, no traceback), then stream."""
+    import signal
+    import threading
+
+    from h3edge.io import oak
+    from h3edge.serving.transport import Keys, open_session
+
+    try:
+        cfg = oak.OakConfig(args.width, args.height, args.fps, args.pose_source, args.pose_wait,
+                            stereo_preset=args.preset)
+        dai = oak.require_depthai()
+        device = oak.open_device(dai)
+        stop = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        with device, open_session(_zenoh_conf(args)) as session:
+            counts = oak.run_oak(cfg, session, Keys.for_map(args.map_id or "default"), device, dai, stop, args.frames)
+    except (ValueError, oak.OakUnavailable) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+    print(f"published {counts['frames']} frames and {counts['poses']} poses ({counts['dropped']} dropped)")
+    return 0
+
+
 def _parse_floats(text: str, n: int, what: str) -> list[float]:
     try:
         v = [float(x) for x in text.replace(",", " ").split()]
@@ -270,6 +296,21 @@ def build_parser() -> argparse.ArgumentParser:
     pb.add_argument("--embed-pose", action="store_true", help="put the pose inside each frame message instead")
     _add_zenoh_args(pb)
     pb.set_defaults(func=_cmd_sim_publish)
+
+    cam = sub.add_parser("camera", help="live camera sources").add_subparsers(dest="camera_command", required=True)
+    oak_p = cam.add_parser("oak", help="stream a Luxonis OAK (depthai v3): colour + depth aligned to colour "
+                                       "(needs the 'oak' extra)")
+    oak_p.add_argument("--width", type=int, default=640, help="colour and depth width (multiple of 16)")
+    oak_p.add_argument("--height", type=int, default=480)
+    oak_p.add_argument("--fps", type=float, default=15.0)
+    oak_p.add_argument("--pose-source", choices=["external", "vio"], default="external",
+                       help="external: the robot's odometry on h3edge/<id>/pose; vio: depthai's BasaltVIO")
+    oak_p.add_argument("--pose-wait", type=float, default=10.0,
+                       help="external: seconds to wait for a first pose before giving up (0: don't check)")
+    oak_p.add_argument("--preset", default="DEFAULT", help="StereoDepth preset (DEFAULT, ROBOTICS, ...)")
+    oak_p.add_argument("--frames", type=int, help="stop after N frames")
+    _add_zenoh_args(oak_p)
+    oak_p.set_defaults(func=_cmd_camera_oak)
 
     ev = sub.add_parser("eval", help="evaluate a mesh against a sequence (Acc/Comp, Depth L1, PSNR, SSIM)")
     ev.add_argument("sequence")

@@ -168,6 +168,11 @@ def test_deploy_files():
         assert line in unit
     directives = [ln.split("=")[0] for ln in unit.splitlines() if ln and not ln.startswith("#")]
     assert "PrivateDevices" not in directives and "MemoryDenyWriteExecute" not in directives
+    oak_unit = (root / "systemd" / "h3edge-oak.service").read_text()
+    for line in ("h3edge camera oak", "Restart=always", "SupplementaryGroups=plugdev"):
+        assert line in oak_unit
+    assert "PrivateDevices" not in [ln.split("=")[0] for ln in oak_unit.splitlines() if ln and not ln.startswith("#")]
+    assert 'ATTRS{idVendor}=="03e7"' in (root / "deploy" / "80-movidius.rules").read_text()
 
 
 def test_duration_log_rotates_and_survives_write_errors(tmp_path, monkeypatch):
