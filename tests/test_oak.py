@@ -219,3 +219,14 @@ def test_command_without_device_exits_with_one_line(args, message):
                        capture_output=True, text=True, timeout=120, env=env)
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(message), r.stderr
+
+
+def test_calibration_intrinsics_for_the_output_size():
+    """From depthai's own CalibrationHandler (as a device would hand it over) to the output's intrinsics."""
+    calib = dai.CalibrationHandler()
+    calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_A, K, (1920, 1080))
+    device = types.SimpleNamespace(readCalibration=lambda: calib)
+    intr, imu_cam = oak.calibration_intrinsics(dai, device, oak.OakConfig(640, 480))
+    assert intr == oak.crop_intrinsics(np.array(K), (1920, 1080), (640, 480))
+    assert intr.fx == pytest.approx(1000 * 480 / 1080) and intr.cx == pytest.approx(320.0)
+    assert imu_cam is None or imu_cam.shape == (4, 4)

@@ -185,6 +185,8 @@ def vio_pose(t, q, imu_to_camera: np.ndarray) -> np.ndarray:
     """Colour-camera-to-world from BasaltVIO's IMU-body-to-world (t metres, q x, y, z, w) and the
     calibration's IMU -> colour camera extrinsics (4x4, translation already in metres):
     T_world_cam = T_world_imu @ inv(T_cam_imu)."""
+    if not np.all(np.isfinite(np.asarray(t, np.float64))):
+        raise ValueError(f"translation {t} is not finite")
     return quat_matrix(t, q) @ np.linalg.inv(np.asarray(imu_to_camera, np.float64))
 
 
@@ -286,8 +288,6 @@ def run_oak(cfg: OakConfig, session, keys, device, dai, stop: threading.Event | 
     Raises :class:`OakUnavailable` when the chosen pose source is not there."""
     import zenoh
 
-    from h3edge.io.protocol import PoseMessage, encode_frame, encode_pose
-
     stop = stop or threading.Event()
     fallback, imu_cam = calibration_intrinsics(dai, device, cfg)
     if cfg.pose_source == "vio" and imu_cam is None:
@@ -300,7 +300,17 @@ def run_oak(cfg: OakConfig, session, keys, device, dai, stop: threading.Event | 
     clock = HostClock()
     counts = {"frames": 0, "poses": 0, "dropped": 0}
     pub_f = session.declare_publisher(keys.frame, congestion_control=zenoh.CongestionControl.DROP)
-    pub_p = session.declare_publisher(keys.pose, congestion_control=zenoh.CongestionControl.BLOCK)
+    pub_p = session.declare_publisher(keys.pose, congestion_control=zenoh.CongestionControl.DROP)
+    try:
+        _stream(cfg, dai, device, keys, pub_f, pub_p, clock, fallback, imu_cam, stop, frames, counts)
+    except RuntimeError as e:  # XLink errors: the device was unplugged or crashed
+        raise OakUnavailable(f"the OAK stream stopped after {counts['frames']} frames: {e}") from None
+    return counts
+
+
+def _stream(cfg, dai, device, keys, pub_f, pub_p, clock, fallback, imu_cam, stop, frames, counts) -> None:
+    from h3edge.io.protocol import PoseMessage, encode_frame, encode_pose
+
     with dai.Pipeline(device) as pipeline:
         streams = build_pipeline(dai, pipeline, cfg, device.getPlatform())
         pipeline.start()
@@ -328,4 +338,3 @@ def run_oak(cfg: OakConfig, session, keys, device, dai, stop: threading.Event | 
                 continue
             pub_f.put(encode_frame(msg, cfg.color_encoding))
             counts["frames"] += 1
-    return counts

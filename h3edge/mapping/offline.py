@@ -68,7 +68,11 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     durations = DurationLog(out / "timings.jsonl", max_bytes=1 << 40)  # every duration of the run
     mapper.timings.sink = durations
     t0 = time.perf_counter()
-    results = map_sequence(seq, mapper, frames, stride)
+    try:
+        results = map_sequence(seq, mapper, frames, stride)
+    except BaseException:
+        durations.close()  # what was logged up to the failure stays readable
+        raise
     map_s = time.perf_counter() - t0
     mesh = mapper.mesh()
     mesh.export(out / "mesh.ply")

@@ -401,7 +401,7 @@ class MapService:
             tmp = self.run_dir / "profile.json.tmp"
             tmp.write_text(json.dumps(doc, indent=1) + "\n")
             tmp.replace(self.run_dir / "profile.json")
-        except OSError as e:
+        except Exception as e:  # noqa: BLE001 - an auxiliary file: it never fails a checkpoint or a stop
             log.error("cannot write %s: %s", self.run_dir / "profile.json", e)
         if self.durations is not None:
             self.durations.flush()
