@@ -10,22 +10,30 @@ import numba as nb
 
 
 @nb.njit(inline="always")
-def trilinear(px, py, pz, grid, g0, vv, priors):
-    """(voxel id or -1, trilinear prior) at a point in voxel units, through the dense id grid."""
-    nx, ny, nz = grid.shape
-    fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
-    ix, iy, iz = int(fx) - g0[0], int(fy) - g0[1], int(fz) - g0[2]
-    if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
-        return -1, 0.0
-    vid = grid[ix, iy, iz]
-    if vid < 0:
-        return -1, 0.0
-    ux, uy, uz = px - fx, py - fy, pz - fz
+def voxel_at(cx, cy, cz, grid, g0):
+    """Voxel id (or -1) of the voxel with integer corner (cx, cy, cz), through the dense id grid."""
+    ix, iy, iz = int(cx) - g0[0], int(cy) - g0[1], int(cz) - g0[2]
+    if not (0 <= ix < grid.shape[0] and 0 <= iy < grid.shape[1] and 0 <= iz < grid.shape[2]):
+        return -1
+    return grid[ix, iy, iz]
+
+@nb.njit(inline="always")
+def interpolate(vid, ux, uy, uz, vv, priors):
+    """Trilinear prior at fraction (ux, uy, uz) inside voxel ``vid``."""
     s = 0.0
     for c in range(8):
         w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * (uz if (c >> 2) & 1 else 1.0 - uz)
         s += w * priors[vv[vid, c]]
-    return vid, s
+    return s
+
+@nb.njit(inline="always")
+def trilinear(px, py, pz, grid, g0, vv, priors):
+    """(voxel id or -1, trilinear prior) at a point in voxel units, through the dense id grid."""
+    fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+    vid = voxel_at(fx, fy, fz, grid, g0)
+    if vid < 0:
+        return -1, 0.0
+    return vid, interpolate(vid, px - fx, py - fy, pz - fz, vv, priors)
 
 @nb.njit(inline="always")
 def face(o, dirs, r, t_in, s_in, t_out, grid, g0, vs, vv, priors):
@@ -103,7 +111,6 @@ def locate_prior(pts, grid, g0, vs, vv, priors, eps, sdf, vox):
     """Voxel id (-1 outside) and trilinear prior of points (metres) like ``VoxelMap.locate``: a point
     within ``eps`` voxels of a face of an unallocated voxel belongs to the allocated one across it
     (priors are shared at vertices, so the value is the same from either side)."""
-    nx, ny, nz = grid.shape
     for i in nb.prange(pts.shape[0]):
         px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
         v, s = trilinear(px, py, pz, grid, g0, vv, priors)
@@ -115,21 +122,13 @@ def locate_prior(pts, grid, g0, vs, vv, priors, eps, sdf, vox):
                 bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
                 if (bx and not on_x) or (by and not on_y) or (bz and not on_z):
                     continue
-                # the voxel below the face along each chosen axis (floor's voxel is above or below it)
+                # along each chosen axis, the voxel on the other side of the face from floor's
                 cx = (ax - 1 if fx >= ax else ax) if bx else fx
                 cy = (ay - 1 if fy >= ay else ay) if by else fy
                 cz = (az - 1 if fz >= az else az) if bz else fz
-                ix, iy, iz = int(cx) - g0[0], int(cy) - g0[1], int(cz) - g0[2]
-                if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz) or grid[ix, iy, iz] < 0:
-                    continue
-                ux = min(max(px - cx, 0.0), 1.0)
-                uy = min(max(py - cy, 0.0), 1.0)
-                uz = min(max(pz - cz, 0.0), 1.0)
-                v = grid[ix, iy, iz]
-                s = 0.0
-                for k in range(8):
-                    w = (ux if k & 1 else 1.0 - ux) * (uy if (k >> 1) & 1 else 1.0 - uy) * \
-                        (uz if (k >> 2) & 1 else 1.0 - uz)
-                    s += w * priors[vv[v, k]]
-                break
+                v = voxel_at(cx, cy, cz, grid, g0)
+                if v >= 0:
+                    s = interpolate(v, min(max(px - cx, 0.0), 1.0), min(max(py - cy, 0.0), 1.0),
+                                    min(max(pz - cz, 0.0), 1.0), vv, priors)
+                    break
         vox[i], sdf[i] = v, s

@@ -220,11 +220,6 @@ class VoxelMap:
             vox[miss], g[miss] = vm, gm
         return vox, np.clip(p - g, 0.0, 1.0)
 
-    def voxel_ids(self, points: torch.Tensor) -> torch.Tensor:
-        """Voxel id (long, -1 outside the map) of each point (N, 3), on the points' device."""
-        vox, _ = self.locate(points.detach().cpu().numpy())
-        return torch.from_numpy(vox).to(points.device)
-
     def coarse_sdf(self, points: torch.Tensor, located: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel
