@@ -9,6 +9,7 @@
     h3edge sim publish SEQUENCE --rate HZ [--pose-rate HZ --jitter MS --frames N --embed-pose]
     h3edge query status|profile|mesh|render|save [--out FILE] [...]
     h3edge profile report RUN_DIR|zenoh:[MAP-ID] [--vs OTHER] [--format table|markdown|json]
+    h3edge deploy plan [--profile P]   # install-time: profile for this Jetson, unit memory limits
 Every zenoh-speaking command takes --zenoh-config FILE, --map-id ID and the endpoint overrides
 --mode, --connect EP, --listen EP, --no-multicast.
 """
@@ -194,8 +195,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
     from h3edge.geometry.camera import look_at
     from h3edge.io.protocol import pose_to_json
-    from h3edge.serving.service import write_render
-    from h3edge.serving.transport import Keys, RemoteError, open_session, query
+    from h3edge.serving.transport import Keys, RemoteError, open_session, query, write_render
 
     keys = Keys.for_map(args.map_id or "default")
     payload = None
@@ -252,6 +252,13 @@ def _cmd_profile_report(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(report(doc, other, args.format))
+    return 0
+
+
+def _cmd_deploy_plan(args: argparse.Namespace) -> int:
+    from h3edge.deploy import format_plan, plan
+
+    print(format_plan(plan(args.profile, args.model_file, args.meminfo, args.runtime_mb)))
     return 0
 
 
@@ -355,6 +362,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_zenoh_args(rp)
     rp.set_defaults(func=_cmd_profile_report)
 
+    dp = sub.add_parser("deploy", help="install-time helpers").add_subparsers(dest="deploy_command", required=True)
+    pl = dp.add_parser("plan", help="profile for this Jetson and the unit's memory limits (KEY=value lines)")
+    pl.add_argument("--profile", help="profile name or TOML path (default: from the device-tree model)")
+    pl.add_argument("--model-file", default="/proc/device-tree/model")
+    pl.add_argument("--meminfo", default="/proc/meminfo")
+    pl.add_argument("--runtime-mb", type=float, help="the runtime's fixed cost (default: measured here)")
+    pl.set_defaults(func=_cmd_deploy_plan)
+
     q = sub.add_parser("query", help="ask a running service for status, profile, mesh, render or a checkpoint")
     q.add_argument("what", choices=["status", "profile", "mesh", "render", "save"])
     q.add_argument("--out", help="write the reply here (mesh file; render: PREFIX_color.png + PREFIX_depth.png)")
@@ -376,15 +391,16 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from h3edge.config import ProfileError
-    from h3edge.io.sequence import DatasetError
-    from h3edge.serving.checkpoint import CheckpointError
+    from h3edge.errors import InputError
 
     try:
         return args.func(args)
-    except (DatasetError, ProfileError, CheckpointError) as e:
+    except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except ConnectionError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Device profiles: ``profiles/*.toml`` loaded into typed dataclasses.
+"""Device profiles: ``h3edge/profiles/*.toml`` (package data) loaded into typed dataclasses.
 
 Each TOML table maps onto one dataclass section of :class:`Profile`; every key must be a field
 of it (a typo is an error naming the file, table and key, not a silently ignored setting) and
@@ -9,21 +9,28 @@ the paper's value where the paper has one.
 from __future__ import annotations
 
 import dataclasses
-import tomllib
+import sys
 import typing
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from pathlib import Path
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # JetPack 6's Python 3.10
+    import tomli as tomllib
+
+from h3edge.errors import InputError
 from h3edge.eval.evaluate import EvalConfig
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.onnx_decoders import InferenceConfig
 from h3edge.serving.service import ServiceConfig
 
-PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
+# Shipped inside the package (package data); the repository's top-level profiles/ links here.
+PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
 
-class ProfileError(ValueError):
+class ProfileError(InputError):
     """An invalid profile file: the message names the file, table and key."""
 
 
@@ -59,11 +66,14 @@ def _section(cls, table: dict, where: str):
         if hints[key] not in (int, float, str, bool):
             raise ProfileError(f"{where}: {key!r} is not settable here (it has its own table)")
         kwargs[key] = _coerce(value, hints[key], f"{where}.{key}")
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as e:  # a section's own check (__post_init__)
+        raise ProfileError(f"{where}: {e}") from None
 
 
 def load_profile(path: str | Path) -> Profile:
-    """Load a profile file; a bare name like ``x86-cpu`` is looked up in the repository's profiles/."""
+    """Load a profile file; a bare name like ``x86-cpu`` is one of the profiles shipped in the package."""
     p = Path(path)
     if not p.suffix and not p.exists():
         p = PROFILES_DIR / f"{p.name}.toml"

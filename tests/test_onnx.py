@@ -1,4 +1,5 @@
-"""ONNX-exported decoders: parity with PyTorch (random and real sample points), no stale export."""
+"""ONNX-exported decoders: parity with PyTorch (random and real sample points), no stale export,
+shared sessions that follow the weights, providers reported and missing ones warned about."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.onnx_decoders import InferenceConfig, OrtMLP, export_decoders, mlp_to_onnx
+from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, OrtMLP, export_decoders, mlp_to_onnx
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
@@ -66,7 +67,7 @@ def test_real_points_parity_and_queries(mapped):
     pts = backproject(f.depth, f.intrinsics, f.pose).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(1)][::7]
     pts = np.concatenate([pts, pts + np.random.default_rng(0).normal(0, 0.03, pts.shape)])  # off the surface too
-    eager, exported = m.view().frozen(), m.view().frozen(ONNX)
+    eager, exported = m.view().frozen(), m.view().frozen(DecoderRuntime(ONNX))
     assert isinstance(exported.field.sdf_mlp, OrtMLP)
     assert np.abs(eager.sdf_np(pts) - exported.sdf_np(pts)).max() <= 1e-4
     assert np.abs(eager.color_np(pts) - exported.color_np(pts)).max() <= 1e-4
@@ -86,3 +87,43 @@ def test_export_follows_training(mapped):
         ref = m.field.sdf_mlp(x)
     assert (after - before).abs().max() > 1e-5  # a new export carries the new weights
     assert (after - ref).abs().max() <= 1e-4
+
+
+def test_snapshots_share_one_session_and_follow_the_weights(mapped):
+    """Every snapshot runs the runtime's one session per decoder (one TensorRT engine), each with
+    its own weights: a snapshot taken after more training answers with the new weights."""
+    seq, m = mapped
+    runtime = DecoderRuntime(ONNX)
+    x = torch.randn(300, m.field.geo_grid.spec.out_dim, generator=torch.Generator().manual_seed(2))
+    first = m.view().frozen(runtime)
+    before = first.field.sdf_mlp(x)
+    for f in list(seq)[15:18]:
+        m.process(f)
+    second = m.view().frozen(runtime)
+    assert second.field.sdf_mlp.session is first.field.sdf_mlp.session
+    assert second.field.color_mlp.session is first.field.color_mlp.session
+    assert len(runtime._sessions) == 2
+    with torch.no_grad():
+        ref = m.field.sdf_mlp(x)
+    after = second.field.sdf_mlp(x)
+    assert (after - ref).abs().max() <= 1e-4 and (after - before).abs().max() > 1e-5
+    assert (first.field.sdf_mlp(x) - before).abs().max() == 0  # the older snapshot keeps its weights
+
+
+def test_missing_provider_is_a_warning_naming_it_and_the_build(caplog):
+    import onnxruntime
+
+    absent = [p for p in ("TensorrtExecutionProvider", "CUDAExecutionProvider", "NoSuchExecutionProvider")
+              if p not in onnxruntime.get_available_providers()]
+    cfg = InferenceConfig(providers=",".join(absent + ["CPUExecutionProvider"]))
+    with caplog.at_level("WARNING"):
+        runtime = DecoderRuntime(cfg)
+    assert all(p in caplog.text for p in absent) and "onnxruntime" in caplog.text
+    d = runtime.describe()
+    assert d["missing"] == absent
+    assert d["active"] == ["CPUExecutionProvider"] and d["onnxruntime"].startswith("onnxruntime")
+
+
+def test_unknown_decoder_backend_is_refused():
+    with pytest.raises(ValueError, match="onnx or torch"):
+        InferenceConfig(decoders="tensorflow")

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import socket
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,11 +166,15 @@ def test_deploy_files():
     for f in ("zenoh-peer.json5", "zenoh-tls-acl.json5"):
         zenoh.Config.from_file(str(root / "deploy" / f))  # parses with this zenoh
     unit = (root / "systemd" / "h3edge.service").read_text()
-    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=h3edge", "MemoryMax=",
-                 "--resume"):
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=h3edge",
+                 "RestartPreventExitStatus=2", "--resume"):
         assert line in unit
     directives = [ln.split("=")[0] for ln in unit.splitlines() if ln and not ln.startswith("#")]
     assert "PrivateDevices" not in directives and "MemoryDenyWriteExecute" not in directives
+    assert "MemoryMax" not in directives  # sized per device by the install script's drop-in
+    script = (root / "deploy" / "install-jetson.sh").read_text()
+    assert "/bin/h3edge\" deploy plan" in script and "MemoryMax=$MEMORY_MAX" in script and "x86-cpu" not in script
+    assert subprocess.run(["bash", "-n", str(root / "deploy" / "install-jetson.sh")]).returncode == 0
     oak_unit = (root / "systemd" / "h3edge-oak.service").read_text()
     for line in ("h3edge camera oak", "Restart=always", "SupplementaryGroups=plugdev"):
         assert line in oak_unit
@@ -201,3 +208,51 @@ def test_duration_log_rotates_and_survives_write_errors(tmp_path, monkeypatch):
     t.add("training", 0.5)
     assert log_._f is None and t.counts["training"] == 102
     log_.close()
+
+
+@pytest.mark.parametrize("model, profile", [
+    ("NVIDIA Jetson AGX Orin Developer Kit\x00", "orin-agx"),
+    ("NVIDIA Jetson AGX Orin 64GB", "orin-agx"),
+    ("NVIDIA Jetson Orin NX Engineering Reference Developer Kit", "orin-nx"),
+    ("NVIDIA Jetson Orin Nano Developer Kit", "orin-nano"),
+    ("NVIDIA Jetson Orin Nano Engineering Reference Developer Kit Super", "orin-nano"),
+    ("Raspberry Pi 5 Model B Rev 1.0", None),
+])
+def test_jetson_model_picks_its_profile(model, profile):
+    from h3edge.config import load_profile
+    from h3edge.deploy import profile_for_model
+
+    assert profile_for_model(model) == profile
+    if profile:
+        assert load_profile(profile).mapper.device == "cuda"
+
+
+def test_deploy_plan_sizes_the_unit_and_refuses_what_does_not_fit(tmp_path):
+    from h3edge.deploy import memory_limits, plan
+    from h3edge.errors import InputError
+
+    model, meminfo = tmp_path / "model", tmp_path / "meminfo"
+    model.write_bytes(b"NVIDIA Jetson Orin Nano Developer Kit\x00")
+    meminfo.write_text("MemTotal:        7620000 kB\nMemFree: 1 kB\n")
+    v = plan(None, model, meminfo, runtime_mb=1500)
+    assert v["PROFILE"] == "orin-nano" and Path(v["PROFILE_FILE"]).is_file()
+    hi, mx = int(v["MEMORY_HIGH"][:-1]), int(v["MEMORY_MAX"][:-1])
+    assert 2048 + 1500 < hi < mx <= 7620000 / 1024 - 1024 and mx % 256 == 0
+    with pytest.raises(InputError, match="does not fit"):
+        plan("orin-agx", model, meminfo, runtime_mb=1500)  # an 8 GB budget on an 8 GB module
+    with pytest.raises(InputError, match="not a known Jetson"):
+        plan(None, tmp_path / "missing", meminfo, runtime_mb=1500)
+    lim = memory_limits(8192, 1200)
+    assert lim.max_mb >= 8192 + 1200 + 0.15 * 8192 and lim.high_mb < lim.max_mb
+
+
+def test_unwritable_state_directory_is_a_one_line_error(tmp_path):
+    from h3edge.serving.checkpoint import CheckpointError, check_writable
+
+    check_writable(tmp_path / "a" / "b")  # created
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CheckpointError, match="not writable.*--state-dir"):
+        check_writable(tmp_path / "file" / "map")
+    r = subprocess.run([sys.executable, "-m", "h3edge", "serve", "--state-dir", str(tmp_path / "file"),
+                        "--no-multicast"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().startswith("error: state directory") and "Traceback" not in r.stderr

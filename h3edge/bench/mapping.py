@@ -30,7 +30,7 @@ import trimesh
 from h3edge.bench.tables import cell, markdown_table
 from h3edge.config import load_profile
 from h3edge.eval.evaluate import evaluate
-from h3edge.geometry.raycast import MeshRaycaster
+from h3edge.geometry.raycast import MeshRaycaster, import_open3d
 from h3edge.io.replica import ReplicaSequence
 from h3edge.io.sequence import read_pose_rows, write_color, write_depth, write_pose_rows
 from h3edge.mapping.offline import run_offline
@@ -68,25 +68,9 @@ def render_replica(root: Path, out: Path, stride: int) -> Path:
     return out
 
 
-def _open3d():
-    """Import Open3D; its CPU wheel links libusb, which the wheel from ``libusb-package`` provides."""
-    try:
-        import ctypes
-        import os
-
-        import libusb_package
-
-        ctypes.CDLL(os.path.join(os.path.dirname(libusb_package.__file__), "libusb-1.0.so"), mode=ctypes.RTLD_GLOBAL)
-    except (ImportError, OSError):
-        pass
-    import open3d as o3d
-
-    return o3d
-
-
 def tsdf_peer(seq, voxel: float, frames: int | None) -> tuple[trimesh.Trimesh, list[float]]:
     """Open3D VoxelBlockGrid TSDF fusion of ``seq``; returns the coloured mesh and per-frame seconds."""
-    o3d = _open3d()
+    o3d = import_open3d()
     o3c = o3d.core
     dev = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),

@@ -1,23 +1,48 @@
-"""CPU mesh renderer: Embree ray casting of a triangle mesh through pixel centres.
+"""CPU mesh renderer: ray casting of a triangle mesh through pixel centres (Open3D).
 
 One job: given a mesh, a pose and intrinsics, return z-depth, the hit triangle and barycentrics
 per pixel, and shade them from vertex colours or a mip-mapped texture atlas. The simulator draws
 its frames with it and evaluation renders GT / reconstructed meshes with it, so both share the
 pixel convention of :mod:`h3edge.geometry.camera`.
+
+The ray casting itself is Open3D's ``RaycastingScene`` (Embree inside, wheels for linux x86-64
+and aarch64), imported only when a :class:`MeshRaycaster` is built: the service and the query
+client never load it. It comes with the ``eval`` extra (``pip install 'h3edge[eval]'``).
+Measured against the embreex binding it replaced: ``python -m h3edge.bench.raycast``.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from embreex import rtcore_scene as rtcs
-from embreex.mesh_construction import TriangleMesh
 
 from h3edge.geometry.camera import Intrinsics, pixel_rays_camera
+
+INSTALL_HINT = "install the 'eval' extra: pip install 'h3edge[eval]' (Open3D)"
+
+
+def import_open3d():
+    """Import Open3D, or raise ImportError naming the extra to install.
+
+    Open3D's x86-64 CPU wheel links ``libusb-1.0.so.0``; on machines without the system library the
+    ``libusb-package`` wheel (part of the extra there) provides it and is loaded first. On a Jetson
+    JetPack ships libusb.
+    """
+    try:
+        import libusb_package
+
+        ctypes.CDLL(os.path.join(os.path.dirname(libusb_package.__file__), "libusb-1.0.so"), mode=ctypes.RTLD_GLOBAL)
+    except (ImportError, OSError):
+        pass
+    try:
+        import open3d
+    except ImportError as e:
+        raise ImportError(f"Open3D is not importable ({e}); {INSTALL_HINT}") from e
+    return open3d
 
 
 @dataclass
@@ -36,7 +61,10 @@ class Hits:
 
 
 class MeshRaycaster:
-    """Embree scene over one triangle mesh (vertices (V, 3), faces (F, 3))."""
+    """Ray-casting scene over one triangle mesh (vertices (V, 3), faces (F, 3)).
+
+    ``threads`` caps Open3D's worker threads (0 or None: all cores).
+    """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, threads: int | None = None):
         vertices = np.ascontiguousarray(vertices, dtype=np.float32)
@@ -45,28 +73,30 @@ class MeshRaycaster:
             raise ValueError(f"expected vertices (V, 3) and faces (F, 3), got {vertices.shape}, {faces.shape}")
         if len(faces) == 0:
             raise ValueError("mesh has no faces")
+        o3d = import_open3d()
+        self._o3c = o3d.core
         self.vertices, self.faces = vertices, faces
-        self._scene = rtcs.EmbreeScene()
-        self._mesh = TriangleMesh(self._scene, vertices, faces)  # keep a reference alive
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces.astype(np.uint32)))
         tri = vertices[faces].astype(np.float64)
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.face_normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
-        # Embree releases the GIL while it traces, so chunks of rays run in parallel threads.
-        self._threads = max(1, threads or os.cpu_count() or 1)
-        self._pool = ThreadPoolExecutor(self._threads) if self._threads > 1 else None
+        self._threads = int(threads or 0)
         self._ray_cache: tuple[Intrinsics, np.ndarray] | None = None
         self._ray_norms = np.zeros(0, np.float32)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
-        """Cast rays (N, 3); returns Embree's dict with 'tfar' (inf on a miss), 'primID', 'u', 'v'."""
-        o = np.ascontiguousarray(np.broadcast_to(origins, directions.shape), dtype=np.float32)
-        d = np.ascontiguousarray(directions, dtype=np.float32)
-        if self._pool is None or len(d) < 4096:
-            return self._scene.run(o, d, output=1)
-        bounds = np.linspace(0, len(d), self._threads + 1).astype(int)
-        parts = list(self._pool.map(lambda ab: self._scene.run(o[ab[0]:ab[1]], d[ab[0]:ab[1]], output=1),
-                                    zip(bounds[:-1], bounds[1:])))
-        return {k: np.concatenate([p[k] for p in parts]) for k in ("tfar", "primID", "u", "v")}
+        """Cast rays (N, 3); returns 'tfar' (distance in units of |direction|, inf on a miss), 'primID'
+        (int32, -1 on a miss) and the barycentric weights 'u', 'v' of the triangle's 2nd and 3rd vertex."""
+        d = np.asarray(directions, dtype=np.float32)
+        rays = np.empty((len(d), 6), np.float32)
+        rays[:, :3] = np.broadcast_to(np.asarray(origins, np.float32), d.shape)
+        rays[:, 3:] = d
+        r = self._scene.cast_rays(self._o3c.Tensor(rays), nthreads=self._threads)
+        prim = r["primitive_ids"].numpy().astype(np.int64)
+        prim[prim == self._scene.INVALID_ID] = -1
+        uv = r["primitive_uvs"].numpy()
+        return {"tfar": r["t_hit"].numpy(), "primID": prim.astype(np.int32), "u": uv[:, 0], "v": uv[:, 1]}
 
     def _camera_rays(self, intr: Intrinsics) -> np.ndarray:
         if self._ray_cache is None or self._ray_cache[0] != intr:

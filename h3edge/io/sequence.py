@@ -14,10 +14,11 @@ from typing import Iterator, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from h3edge.errors import InputError
 from h3edge.geometry.camera import Intrinsics, rigid_error
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A malformed dataset: the message names the file and, where it applies, the line."""
 
 

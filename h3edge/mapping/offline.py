@@ -15,12 +15,11 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from h3edge.config import Profile
 from h3edge.eval.evaluate import evaluate, format_table
-from h3edge.io.sequence import Sequence
+from h3edge.io.sequence import Sequence, write_color, write_depth
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.mapping.timing import DurationLog, format_timings
@@ -50,11 +49,11 @@ def write_renders(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> N
     for i in np.linspace(0, len(seq) - 1, min(views, len(seq))).round().astype(int):
         f = seq[int(i)]
         rgb, depth = mapper.render(f.intrinsics, f.pose)
-        cv2.imwrite(str(out / f"view_{i:04d}_color.png"), rgb[..., ::-1])
-        cv2.imwrite(str(out / f"view_{i:04d}_depth.png"), np.clip(depth * 1000 + 0.5, 0, 65535).astype(np.uint16))
+        write_color(out / f"view_{i:04d}_color.png", rgb)
+        write_depth(out / f"view_{i:04d}_depth.png", depth, 1000.0)
         strips.append(np.concatenate([f.color, rgb], 1))
     if strips:
-        cv2.imwrite(str(out / "gt_vs_render.jpg"), np.concatenate(strips, 0)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+        write_color(out / "gt_vs_render.jpg", np.concatenate(strips, 0), jpeg_quality=90)
 
 
 def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None = None, stride: int = 1,
@@ -92,7 +91,8 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
 
     stats = mapper.stats()
     (out / "profile.json").write_text(json.dumps(profile_document(
-        profile.name, str(mapper.device), mapper.frames_mapped, summary, stats["memory_bytes"], stats["dropped"]),
+        profile.name, str(mapper.device), mapper.frames_mapped, summary, stats["memory_bytes"], stats["dropped"],
+        {"mapping_device": str(mapper.device), "decoders": "torch"}),  # offline renders use the eager modules
         indent=1) + "\n")
     run = {"sequence": str(seq.root), "profile": profile.name, "settings": dataclasses.asdict(settings),
            "frames_in": len(results), "stats": mapper.stats(), "mesh_vertices": len(mesh.vertices),

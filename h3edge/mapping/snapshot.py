@@ -18,7 +18,7 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.field import Field
 from h3edge.mapping.mesh import extract_mesh
-from h3edge.mapping.onnx_decoders import InferenceConfig, OrtMLP, export_decoders
+from h3edge.mapping.onnx_decoders import DecoderRuntime
 from h3edge.mapping.render import MapRenderer, PriorLookup, RenderConfig
 from h3edge.mapping.voxels import VoxelMap
 
@@ -59,16 +59,13 @@ class MapView:
         self.mesh_resolution = mesh_resolution
         self.frames_mapped = frames_mapped
 
-    def frozen(self, inference: InferenceConfig | None = None) -> "MapView":
-        """An independent copy (call where the field is not being updated). With ``inference``
-        asking for ONNX, its decoders are exported and run by onnxruntime."""
+    def frozen(self, decoders: DecoderRuntime | None = None) -> "MapView":
+        """An independent copy (call where the field is not being updated). With ``decoders`` its
+        SDF and colour decoders run on that runtime's shared onnxruntime sessions."""
         field = _inference_copy(self.field)
-        if inference is not None and inference.decoders == "onnx":
-            models = export_decoders(field)
-            field.sdf_mlp = OrtMLP(models["sdf"], inference)
-            field.color_mlp = OrtMLP(models["color"], inference)
-        elif inference is not None and inference.decoders != "torch":
-            raise ValueError(f"inference.decoders must be onnx or torch, got {inference.decoders!r}")
+        if decoders is not None:
+            field.sdf_mlp = decoders.mlp(field.sdf_mlp)
+            field.color_mlp = decoders.mlp(field.color_mlp)
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.beta,
                        self.render_cfg, self.mesh_resolution, self.frames_mapped)
 

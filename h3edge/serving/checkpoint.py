@@ -25,13 +25,31 @@ from pathlib import Path
 
 import numpy as np
 
+from h3edge.errors import InputError
+
 MAGIC = b"H3EDGE-CKPT\n"
 FORMAT_VERSION = 1
 CHECKPOINT_NAME = "map.h3ckpt"
 
 
-class CheckpointError(ValueError):
+class CheckpointError(InputError):
     """A checkpoint that cannot be used; the message says why."""
+
+
+def check_writable(directory: Path) -> None:
+    """Create ``directory`` and prove a file can be written, synced and removed there; otherwise
+    CheckpointError (one line: the service must not map on without checkpoints)."""
+    probe = Path(directory) / f".write-probe-{os.getpid()}"
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as f:
+            f.write(b"h3edge")
+            f.flush()
+            os.fsync(f.fileno())
+        probe.unlink()
+    except OSError as e:
+        raise CheckpointError(f"state directory {directory} is not writable ({type(e).__name__}: {e.strerror or e}); "
+                              "checkpoints could not be saved: fix its owner / permissions or pass --state-dir") from None
 
 
 def write_checkpoint(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> int:

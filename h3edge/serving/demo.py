@@ -116,8 +116,7 @@ def run_demo(seq, profile: str, out: Path, rate: float = 2.0, map_id: str = "dem
     from h3edge.config import load_profile
     from h3edge.eval.evaluate import evaluate, format_table
     from h3edge.mapping.timing import format_timings
-    from h3edge.serving.service import write_render
-    from h3edge.serving.transport import Keys, open_session, publish_sequence, query, wait_for_service
+    from h3edge.serving.transport import Keys, open_session, publish_sequence, query, wait_for_service, write_render
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -49,9 +49,11 @@ def device_info(device: str) -> dict:
 
 
 def profile_document(profile_name: str, device: str, frames: int, components: dict, memory: dict | None = None,
-                     dropped: dict | None = None) -> dict:
+                     dropped: dict | None = None, inference: dict | None = None) -> dict:
+    """The profile document: host and mapping device, timings per component, memory, drops, and
+    what the query decoders run on (``inference``: requested / active onnxruntime providers)."""
     return {"profile": profile_name, **device_info(device), "frames": frames, "components": components,
-            "memory_bytes": memory or {}, "dropped": dropped or {}}
+            "memory_bytes": memory or {}, "dropped": dropped or {}, "inference": inference or {}}
 
 
 def load_document(source: str, zenoh_conf=None, map_id: str = "default", timeout: float = 10.0) -> dict:

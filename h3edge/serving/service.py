@@ -36,20 +36,21 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import FrameMessage, ProtocolError, decode_frame, decode_pose, encode_frame, pose_from_json
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
-from h3edge.mapping.onnx_decoders import InferenceConfig, export_decoders
+from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
 from h3edge.mapping.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint import CHECKPOINT_NAME, CheckpointError, read_checkpoint, write_checkpoint
+from h3edge.serving.checkpoint import (CHECKPOINT_NAME, CheckpointError, check_writable, read_checkpoint,
+                                      write_checkpoint)
 
 log = logging.getLogger(__name__)
 
@@ -69,10 +70,6 @@ class ServiceConfig:
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
     query_timeout_s: float = 60.0
     timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
-
-
-class QueryError(ValueError):
-    """A query the service refuses or cannot answer; the message goes back to the client."""
 
 
 # ------------------------------------------------------------------------------ memory plan
@@ -122,6 +119,10 @@ class MapService:
         self.settings = dataclasses.replace(settings, keyframes=kf)
         self.state_dir = Path(cfg.state_dir)
         self.checkpoint_path = self.state_dir / cfg.map_id / CHECKPOINT_NAME
+        check_writable(self.checkpoint_path.parent)
+        # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
+        self.decoders = (DecoderRuntime(inference, cache_dir=self.state_dir / cfg.map_id / "trt_cache")
+                         if inference.decoders == "onnx" else None)
         self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s)
         self.mapper = Mapper(self.settings)
         self.resumed_from: dict | None = None
@@ -194,7 +195,7 @@ class MapService:
             pose = np.eye(4)
             pose[0, 3] = 0.02 * i
             m.process(Frame(i, float(i), color, depth, pose, intr))
-        view = m.view().frozen(self.inference)
+        view = m.view().frozen(self.decoders)
         view.render(intr, np.eye(4))
         view.mesh(2)
         return time.perf_counter() - t0
@@ -331,7 +332,7 @@ class MapService:
             try:
                 if self.mapper.field is None:
                     raise QueryError("nothing mapped yet")
-                view = self.mapper.view().frozen(self.inference)
+                view = self.mapper.view().frozen(self.decoders)
                 self._view, self._view_time = view, time.monotonic()
                 for f in views:
                     f.set_result(view)
@@ -436,6 +437,7 @@ class MapService:
 
         delays = list(self._delays)
         return {"map_id": self.cfg.map_id, "profile": self.profile_name, "device": str(self.mapper.device),
+                "inference": self.inference_info(),
                 "uptime_s": round(time.time() - self.started, 1),
                 "frames": {"received": self._counts["frames_received"], "mapped": s.get("frames_mapped", 0),
                            "dropped": sum(dropped.values()), "queued": len(self._queue)},
@@ -450,6 +452,11 @@ class MapService:
                 "last_error": self.last_error, "last_checkpoint": self.last_checkpoint,
                 "resumed_from": self.resumed_from, "mapper_alive": self.alive}
 
+    def inference_info(self) -> dict:
+        """What queries run on: the mapping device and the decoders' runtime and providers."""
+        info = {"mapping_device": str(self.mapper.device), "decoders": self.inference.decoders}
+        return {**info, **(self.decoders.describe() if self.decoders is not None else {})}
+
     def profile(self) -> dict:
         """The timing profile document (:mod:`h3edge.serving.profile_report`) plus a markdown table."""
         from h3edge.mapping.timing import format_timings
@@ -459,7 +466,7 @@ class MapService:
         n = self.mapper.frames_mapped
         st = self.status()
         doc = profile_document(self.profile_name, str(self.mapper.device), n, summary,
-                               st["memory"]["parts_bytes"], st["dropped"])
+                               st["memory"]["parts_bytes"], st["dropped"], self.inference_info())
         doc["table"] = format_timings(summary, f"per-component timings ({self.profile_name}, {self.mapper.device})",
                                       frames=n)
         return doc
@@ -525,16 +532,3 @@ class MapService:
         raw = bool(request.get("raw", False))
         msg = FrameMessage(int(time.time() * 1e9), view.frames_mapped, rgb, depth, intr, pose, "render")
         return encode_frame(msg, "raw_rgb8" if raw else "png", "raw_f32" if raw else "png16", 1000.0)
-
-
-def write_render(data: bytes, out: Path) -> tuple[Path, Path]:
-    """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
-    msg = decode_frame(data)
-    out = Path(out)
-    stem = out.with_suffix("") if out.suffix else out
-    cpath, dpath = Path(f"{stem}_color.png"), Path(f"{stem}_depth.png")
-    cpath.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(cpath), msg.color[..., ::-1])
-    cv2.imwrite(str(dpath), np.clip(msg.depth * 1000 + 0.5, 0, 65535).astype(np.uint16))
-    return cpath, dpath
-

@@ -18,10 +18,13 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import zenoh
+
+from h3edge.errors import QueryError
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +64,12 @@ def zenoh_config(path: str | None = None, mode: str | None = None, connect: list
 
 
 def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """Open a zenoh session; ConnectionError (one line) when zenoh cannot (e.g. client mode, no router)."""
     zenoh.init_log_from_env_or("error")
-    return zenoh.open(conf)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise ConnectionError(f"cannot open a zenoh session: {str(e).split(' at /')[0]}") from None
 
 
 # ------------------------------------------------------------------------------------ server
@@ -104,8 +111,6 @@ class ZenohServer:
         return cb
 
     def _work(self, q: queue.Queue) -> None:
-        from h3edge.serving.service import QueryError
-
         while not self._closing.is_set():
             try:
                 query, fn = q.get(timeout=0.2)
@@ -123,8 +128,6 @@ class ZenohServer:
 
     @staticmethod
     def _request(query) -> dict:
-        from h3edge.serving.service import QueryError
-
         out: dict = {}
         if query.payload is not None:
             raw = query.payload.to_bytes()
@@ -146,8 +149,6 @@ class ZenohServer:
         return json.dumps(self.service.profile()).encode(), zenoh.Encoding.APPLICATION_JSON
 
     def _mesh(self, query):
-        from h3edge.serving.service import QueryError
-
         req = self._request(query)
         unknown = set(req) - {"format", "resolution", "aabb"}
         if unknown:
@@ -184,6 +185,21 @@ class ZenohServer:
 
 
 # ------------------------------------------------------------------------------------ client
+def write_render(data: bytes, out: Path) -> tuple[Path, Path]:
+    """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
+    from h3edge.io.protocol import decode_frame
+    from h3edge.io.sequence import write_color, write_depth
+
+    msg = decode_frame(data)
+    out = Path(out)
+    stem = out.with_suffix("") if out.suffix else out
+    cpath, dpath = Path(f"{stem}_color.png"), Path(f"{stem}_depth.png")
+    cpath.parent.mkdir(parents=True, exist_ok=True)
+    write_color(cpath, msg.color)
+    write_depth(dpath, msg.depth, 1000.0)
+    return cpath, dpath
+
+
 class RemoteError(RuntimeError):
     """The service answered with an error reply (the message is the service's)."""
 
