@@ -2,7 +2,7 @@
 
     h3edge sim make OUT [--seed S --frames N --width W --height H --preset default|tiny]
     h3edge sim sheet SEQUENCE OUT.png [--frames N]
-    h3edge eval SEQUENCE [--mesh MESH.ply] [--json OUT.json]
+    h3edge eval SEQUENCE [--mesh MESH.ply] [--reference tsdf|MESH.ply|none] [--json OUT.json]
     h3edge map SEQUENCE --out DIR [--profile P --frames N --stride S --device D --no-eval]
     h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job: the whole system on loopback
     h3edge serve --profile P [--zenoh-config F] [--map-id ID] [--state-dir DIR] [--resume]
@@ -64,7 +64,15 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     cfg = load_profile(args.profile).eval
     if args.points:
         cfg = dataclasses.replace(cfg, n_points=args.points)
-    res = evaluate(seq, mesh=mesh, cfg=cfg)
+    reference = None
+    if args.reference == "tsdf" or (args.reference is None and seq.gt_mesh_path is None):
+        from h3edge.eval.tsdf import fuse_tsdf
+
+        log.info("fusing a %.0f mm TSDF of the same frames as the reference mesh", 1000 * args.tsdf_voxel)
+        reference, _ = fuse_tsdf(seq, args.tsdf_voxel)
+    elif args.reference and args.reference != "none":
+        reference = trimesh.load(args.reference, process=False)
+    res = evaluate(seq, mesh=mesh, cfg=cfg, reference=reference)
     print(format_table(res, f"{mesh_path} vs {args.sequence}"))
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
@@ -325,6 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
     ev.add_argument("--points", type=int, help="surface samples per mesh (default: the profile's)")
     ev.add_argument("--json", help="write the metrics here")
+    ev.add_argument("--reference", help="reference mesh to compare with: a PLY path, 'tsdf' (fuse one from the "
+                                        "sequence) or 'none'; default: 'tsdf' when the sequence has no GT mesh")
+    ev.add_argument("--tsdf-voxel", type=float, default=0.01, help="voxel of the reference TSDF [m]")
     ev.set_defaults(func=_cmd_eval)
 
     mp = sub.add_parser("map", help="map a sequence offline: mesh, renders, metrics, timings")

@@ -24,6 +24,16 @@ def test_sim_make_and_eval(tmp_path):
     assert "Accuracy [cm]" in p.stdout and "PSNR held-out" in p.stdout
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["geometry"]["accuracy_cm"] < 5 and m["train_views"]["depth_l1_cm"] < 0.01
+    assert m["train_views"]["front_share"] == 0 and m["train_views"]["behind_share"] == 0
+    assert "vs_reference" not in m  # a GT mesh: no TSDF reference unless asked
+    # without a GT mesh (real data) the mesh is compared with a TSDF fused from the same frames
+    p = run("eval", str(out), "--points", "200000", "--reference", "tsdf", "--tsdf-voxel", "0.02",
+            "--json", str(tmp_path / "r.json"))
+    assert "Mesh -> reference mesh" in p.stdout and "in front / behind" in p.stdout
+    r = json.loads((tmp_path / "r.json").read_text())["vs_reference"]
+    # the GT mesh is the whole room, the TSDF only what 12 frames saw: the TSDF lies on the GT mesh
+    # (200k points over the room's ~100 m2 leave a sampling floor of ~1.5 cm)
+    assert r["from_reference_cm"] < 2.5 and r["reference_not_covered_share"] < 0.05 and r["to_reference_cm"] > 5
     run("sim", "sheet", str(out), str(tmp_path / "sheet.png"), "--frames", "4")
     assert (tmp_path / "sheet.png").stat().st_size > 1000
 

@@ -6,7 +6,8 @@ import trimesh
 
 from h3edge.eval.cull import cull_mesh
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
-from h3edge.eval.metrics import accuracy_completion, depth_l1, psnr, sample_surface, ssim
+from h3edge.eval.metrics import (accuracy_completion, depth_error_map, depth_error_shares, depth_l1, mesh_to_mesh,
+                                 psnr, sample_surface, ssim)
 from h3edge.geometry.camera import Intrinsics, look_at
 
 
@@ -98,3 +99,34 @@ def test_view_metrics_on_self(tiny_scene):
     assert res["views"] == 4
     assert res["depth_l1_cm"] < 0.01 and res["depth_coverage"] > 0.99
     assert res["psnr_db"] > 25
+
+
+def test_depth_error_shares_and_map_known_answers():
+    gt = np.full((10, 10), 2.0, np.float32)
+    gt[0] = 0  # no sensor depth: not counted
+    pred = gt.copy()
+    pred[1] = 1.9  # 10 cm in front: 10 of 90 valid pixels
+    pred[2, :5] = 2.2  # 20 cm behind: 5
+    pred[3, :3] = 0  # not rendered: 3
+    pred[4] = 2.03  # within 5 cm
+    sh = depth_error_shares(pred, gt, 0.05)
+    assert sh["front_share"] == pytest.approx(10 / 90) and sh["behind_share"] == pytest.approx(5 / 90)
+    assert sh["missing_share"] == pytest.approx(3 / 90) and sh["median_abs_m"] == pytest.approx(0.0)
+    img = depth_error_map(pred, gt, 0.05)
+    assert (img[0] == 0).all() and tuple(img[1, 0]) == (220, 30, 30) and tuple(img[2, 0]) == (30, 60, 230)
+    assert tuple(img[3, 0]) == (255, 255, 255) and tuple(img[4, 0]) == (190, 190, 190)
+
+
+def test_mesh_to_mesh_both_directions():
+    a = trimesh.creation.box((1.0, 1.0, 1.0))
+    b = a.copy()
+    b.apply_translation((0.0, 0.0, 0.1))  # 10 cm up: top and bottom far, sides slide
+    extra = trimesh.creation.box((0.2, 0.2, 0.2))
+    extra.apply_translation((3.0, 0.0, 0.0))
+    d = mesh_to_mesh(trimesh.util.concatenate([a, extra]), a, n=20000, threshold=0.05)
+    assert d["b_to_a_far_share"] < 0.01  # a is covered by itself + extra
+    assert d["a_to_b_far_share"] == pytest.approx(extra.area / (a.area + extra.area), abs=0.02)
+    same = mesh_to_mesh(a, a, n=20000)
+    assert same["a_to_b_mean"] < 0.01 and same["a_to_b_far_share"] == 0.0
+    shifted = mesh_to_mesh(b, a, n=20000)
+    assert 0.2 < shifted["a_to_b_far_share"] < 0.45  # most of top and bottom are 10 cm off

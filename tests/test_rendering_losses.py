@@ -76,7 +76,7 @@ def test_free_space_and_sdf_values():
     fs, sd = free_space_and_sdf(pred, d, torch.tensor([2.0]), torch.ones_like(d, dtype=torch.bool), TR)
     assert fs.item() == pytest.approx((1.0 + 0.0) / 2)  # samples at 1.0 and 1.5 are free space
     targets = torch.tensor([0.4, 0.0, -0.4])  # samples 1.98, 2.0, 2.02 are in the band
-    assert sd.item() == pytest.approx(float((targets ** 2).mean()), rel=1e-5)
+    assert sd.item() == pytest.approx(float(((TR * targets) ** 2).mean()), rel=1e-5)  # metres^2 (authors' units)
     # rays without valid depth and masked samples do not count
     fs, sd = free_space_and_sdf(pred, d, torch.tensor([0.0]), torch.ones_like(d, dtype=torch.bool), TR)
     assert fs.item() == 0 and sd.item() == 0
@@ -92,7 +92,7 @@ def test_surface_aware_rule_drops_negative_targets_past_second_sign_change():
     _, aware = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=True)
     _, vanilla = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=False)
     t = (gt - d[0]) / TR
-    e = (pred[0] - t) ** 2
+    e = (TR * (pred[0] - t)) ** 2
     assert vanilla.item() == pytest.approx(float(e.mean()), rel=1e-5)
     assert aware.item() == pytest.approx(float(e[:4].mean()), rel=1e-5)  # samples 4..6 (t < 0) dropped
     assert math.isfinite(aware.item())

@@ -6,7 +6,7 @@ import torch
 from h3edge.io import open_sequence
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.rendering import composite
-from h3edge.mapping.trainer import TrainConfig, rays_from_frame, sample_depths, train_step
+from h3edge.mapping.trainer import TrainConfig, free_depths_in_voxels, rays_from_frame, sample_depths, train_step
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap
 from h3edge.sim.scene import ROOM_SIZE
 
@@ -55,3 +55,31 @@ def test_training_reduces_losses(tiny_scene):
     assert last < 0.5 * first["loss"]
     assert np.mean([h["rgb"] for h in hist[-5:]]) < first["rgb"]
     assert err1 < err0 and err1 < 0.02 and hit > 0.9
+
+
+def test_free_space_samples_land_in_voxels(tiny_scene):
+    """Free-space samples drawn inside the allocated voxels a ray crosses (where a phantom surface
+    could be) instead of over the whole range, where most miss every voxel and carve nothing."""
+    seq = open_sequence(tiny_scene)
+    voxels = VoxelMap(VoxelConfig(min_points=3))
+    for i in (0, 3, 6, 9):
+        f = seq[i]
+        voxels.allocate(f.depth, f.intrinsics, f.pose)
+    f = seq[5]
+    g = torch.Generator().manual_seed(0)
+    rays = rays_from_frame(f, torch.randint(0, f.depth.size, (2000,), generator=g))
+    cfg = TrainConfig()
+
+    def share_inside(t):
+        pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
+        vox, _ = voxels.locate(pts.reshape(-1, 3).numpy())
+        ok = (rays.depth > 0)[:, None].expand_as(t).reshape(-1).numpy()
+        return float((vox >= 0)[ok].mean())
+
+    t_all, b0 = sample_depths(rays.depth, cfg, 0.05, g)
+    t_vox = free_depths_in_voxels(rays, voxels, cfg, 0.05, g)
+    assert t_vox.shape == (2000, cfg.free_samples) and (t_vox.diff(dim=1) >= 0).all()
+    valid = rays.depth > 0
+    assert (t_vox[valid] <= (rays.depth[valid] - 0.05)[:, None] + 1e-6).all() and (t_vox >= cfg.near).all()
+    stratified, in_voxels = share_inside(t_all[:, :b0]), share_inside(t_vox)
+    assert in_voxels > stratified + 0.2, (stratified, in_voxels)

@@ -2,6 +2,9 @@
 
 Datasets:
 - ``sim``: the default simulated scene (400 frames 640x480, held-out views between them);
+- ``real``: the real Kinect v1 sequence ``../shared/data/7scenes_redkitchen_dev`` (7-Scenes
+  redkitchen, 270 frames mapped, 30 held out; no GT mesh: both meshes are compared with the TSDF
+  mesh instead, both directions);
 - ``replica``: real Replica office0 geometry (``../shared/data/replica_office0``, research-only
   terms: read in place, never copied into the repository): its GT mesh ray-cast with vertex colours
   along every ``--replica-stride``-th of the 2000 real poses, held-out views at the poses half-way
@@ -10,10 +13,14 @@ Datasets:
 Peer: Open3D's ``VoxelBlockGrid`` TSDF fusion (CPU) when ``open3d`` imports, at ``--tsdf-voxel``
 (1 cm) with a 4-voxel truncation; its mesh is rendered with vertex colours for PSNR / SSIM / Depth L1.
 Both run in this process on the same frames; per-frame time is the median of the per-frame
-integration time (TSDF) or whole-frame time including reading and decoding (h3edge). Output: a markdown table
-and JSON.
+integration time (TSDF) or whole-frame time including reading and decoding (h3edge). Beside Depth L1:
+the share of valid pixels rendered > 5 cm in front of / behind the sensor depth and the median
+error. Output: a markdown table and JSON, and one picture per dataset (OUT_<dataset>.png; rows are
+held-out views; columns: sensor colour | h3edge | TSDF | h3edge depth error | TSDF depth error,
+red = > 5 cm in front of the sensor depth, blue = > 5 cm behind, grey = within, white = not
+rendered, black = no sensor depth).
 
-    python -m h3edge.bench.mapping [--datasets sim replica] [--profile x86-cpu] [--out docs/bench_mapping]
+    python -m h3edge.bench.mapping [--datasets sim replica real] [--profile x86-cpu] [--out docs/bench_mapping]
 """
 
 from __future__ import annotations
@@ -21,22 +28,26 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 
 from h3edge.bench.tables import cell, markdown_table
 from h3edge.config import load_profile
-from h3edge.eval.evaluate import evaluate
-from h3edge.geometry.raycast import MeshRaycaster, import_open3d
+from h3edge.eval.evaluate import MeshRenderer, evaluate
+from h3edge.eval.metrics import depth_error_map
+from h3edge.eval.tsdf import fuse_tsdf
+from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.replica import ReplicaSequence
 from h3edge.io.sequence import read_pose_rows, write_color, write_depth, write_pose_rows
 from h3edge.mapping.offline import run_offline
 
 log = logging.getLogger("h3edge.bench.mapping")
-REPLICA = Path(__file__).resolve().parents[3] / "shared" / "data" / "replica_office0"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+REPLICA = SHARED / "replica_office0"
+REAL = SHARED / "7scenes_redkitchen_dev"
 
 
 def render_replica(root: Path, out: Path, stride: int) -> Path:
@@ -68,35 +79,15 @@ def render_replica(root: Path, out: Path, stride: int) -> Path:
     return out
 
 
-def tsdf_peer(seq, voxel: float, frames: int | None) -> tuple[trimesh.Trimesh, list[float]]:
-    """Open3D VoxelBlockGrid TSDF fusion of ``seq``; returns the coloured mesh and per-frame seconds."""
-    o3d = import_open3d()
-    o3c = o3d.core
-    dev = o3c.Device("CPU:0")
-    vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
-                                        ((1), (1), (3)), voxel, 16, 100_000, dev)
-    K = o3c.Tensor(seq.intrinsics.K, o3c.float64)
-    times = []
-    n = len(seq) if frames is None else min(frames, len(seq))
-    for i in range(n):
-        f = seq[i]
-        t0 = time.perf_counter()
-        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.depth, np.float32))).to(dev)
-        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color.astype(np.float32) / 255))).to(dev)
-        ext = o3c.Tensor(np.linalg.inv(f.pose), o3c.float64)
-        blocks = vbg.compute_unique_block_coordinates(depth, K, ext, 1.0, 10.0, 4.0)
-        vbg.integrate(blocks, depth, color, K, K, ext, 1.0, 10.0, 4.0)
-        times.append(time.perf_counter() - t0)
-    m = vbg.extract_triangle_mesh().to_legacy()
-    mesh = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=False)
-    rgb = np.clip(np.asarray(m.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
-    mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
-    return mesh, times
-
-
 def _row(name: str, per_frame: list[float], res: dict) -> dict:
     g, h, t = res.get("geometry", {}), res.get("heldout_views", {}), res.get("train_views", {})
+    ref = res.get("vs_reference", {})
+    pct = lambda v: None if v is None else 100 * v  # noqa: E731
     return {"method": name, "frame_ms_median": 1000 * float(np.median(per_frame)),
+            "front_pct_heldout": pct(h.get("front_share")), "behind_pct_heldout": pct(h.get("behind_share")),
+            "depth_median_heldout_cm": h.get("depth_median_cm"),
+            "to_tsdf_cm": ref.get("to_reference_cm"), "far_from_tsdf_pct": pct(ref.get("far_from_reference_share")),
+            "tsdf_not_covered_pct": pct(ref.get("reference_not_covered_share")),
             "accuracy_cm": g.get("accuracy_cm"), "completion_cm": g.get("completion_cm"),
             "completion_ratio": g.get("completion_ratio"),
             "psnr_train_db": t.get("psnr_db"), "psnr_heldout_db": h.get("psnr_db"), "ssim_heldout": h.get("ssim"),
@@ -113,32 +104,57 @@ COLUMNS = [("method", lambda r: r["method"], None), ("frame [ms] median", lambda
            ("Comp ratio", _ratio, None), ("PSNR train", lambda r: r["psnr_train_db"], 2),
            ("PSNR held-out", lambda r: r["psnr_heldout_db"], 2), ("SSIM held-out", lambda r: r["ssim_heldout"], 3),
            ("Depth L1 train [cm]", lambda r: r["depth_l1_train_cm"], 3),
-           ("Depth L1 held-out [cm]", lambda r: r["depth_l1_heldout_cm"], 3)]
+           ("Depth L1 held-out [cm]", lambda r: r["depth_l1_heldout_cm"], 3),
+           ("median err held-out [cm]", lambda r: r.get("depth_median_heldout_cm"), 2),
+           ("> 5 cm in front [%]", lambda r: r.get("front_pct_heldout"), 2),
+           ("> 5 cm behind [%]", lambda r: r.get("behind_pct_heldout"), 2),
+           ("mesh -> TSDF [cm]", lambda r: r.get("to_tsdf_cm"), 2),
+           ("mesh > 5 cm from TSDF [%]", lambda r: r.get("far_from_tsdf_pct"), 1),
+           ("TSDF > 5 cm from mesh [%]", lambda r: r.get("tsdf_not_covered_pct"), 1)]
 
 
 def format_rows(title: str, rows: list[dict]) -> str:
     return markdown_table(title, COLUMNS, rows)
 
 
-def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_voxel: float) -> dict:
+def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_voxel: float,
+                  picture: Path | None = None) -> dict:
+    log.info("%s: TSDF peer (Open3D VoxelBlockGrid, %.0f mm voxels)", name, 1000 * tsdf_voxel)
+    tsdf, tsdf_times = fuse_tsdf(seq, tsdf_voxel, frames)
+    work.mkdir(parents=True, exist_ok=True)
+    tsdf.export(work / f"{name}_tsdf_mesh.ply")
+    reference = tsdf if seq.gt_mesh_path is None else None  # no GT mesh: compare with the TSDF mesh
     log.info("%s: h3edge mapper (%s), %d frames", name, profile.name, len(seq) if frames is None else frames)
-    run = run_offline(seq, profile, work / f"{name}_h3edge", frames=frames)
-    rows = [_row(f"h3edge ({profile.name})", run["mapper"].timings.samples["frame"], run["metrics"])]
+    run = run_offline(seq, profile, work / f"{name}_h3edge", frames=frames, reference=reference)
+    rows = [_row(f"h3edge ({profile.name})", run["mapper"].timings.samples["frame"], run["metrics"]),
+            _row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", tsdf_times,
+                 evaluate(seq, mesh=tsdf, cfg=profile.eval))]
+    if picture is not None:
+        write_comparison(seq, run["mapper"], MeshRenderer(tsdf), picture, profile.eval.depth_error_threshold)
     comps = run["mapper"].timings.summary()
-    try:
-        log.info("%s: TSDF peer (Open3D VoxelBlockGrid, %.0f mm voxels)", name, 1000 * tsdf_voxel)
-        mesh, times = tsdf_peer(seq, tsdf_voxel, frames)
-        mesh.export(work / f"{name}_tsdf_mesh.ply")
-        rows.append(_row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", times, evaluate(seq, mesh=mesh, cfg=profile.eval)))
-    except ImportError as e:
-        log.warning("TSDF peer skipped: %s", e)
     return {"dataset": name, "frames": len(run["mapper"].timings.samples["frame"]), "rows": rows,
             "h3edge_components": comps, "h3edge_stats": run["stats"]}
 
 
+def write_comparison(seq, h3, tsdf, path: Path, threshold: float = 0.05, views: int = 4, tile: int = 256) -> None:
+    """One row per held-out view (training views when there are none): sensor colour | h3edge |
+    TSDF | h3edge depth error | TSDF depth error (:func:`~h3edge.eval.metrics.depth_error_map`)."""
+    held = getattr(seq, "heldout", None)
+    src = held if held is not None and len(held) else seq
+    rows = []
+    for i in np.linspace(0, len(src) - 1, min(views, len(src))).round().astype(int):
+        f = src[int(i)]
+        (c1, d1), (c2, d2) = h3.render(f.intrinsics, f.pose), tsdf.render(f.intrinsics, f.pose)
+        tiles = [f.color, c1, c2, depth_error_map(d1, f.depth, threshold), depth_error_map(d2, f.depth, threshold)]
+        h = int(round(tile * f.color.shape[0] / f.color.shape[1]))
+        rows.append(np.concatenate([cv2.resize(t, (tile, h), interpolation=cv2.INTER_AREA) for t in tiles], 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_color(path, np.concatenate(rows, 0))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", nargs="+", default=["sim", "replica"], choices=["sim", "replica"])
+    ap.add_argument("--datasets", nargs="+", default=["sim", "replica", "real"], choices=["sim", "replica", "real"])
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
     ap.add_argument("--replica-stride", type=int, default=5)
@@ -156,13 +172,21 @@ def main(argv=None) -> int:
         if ds == "sim":
             seq = ReplicaSequence(ensure_scene(work / "scene_default", PRESETS["default"]))
             title = "default simulated scene (640x480)"
+        elif ds == "real":
+            if not REAL.is_dir():
+                log.warning("real skipped: %s not present", REAL)
+                continue
+            seq = ReplicaSequence(REAL)
+            title = "real Kinect v1: 7-Scenes redkitchen dev (270 frames, 30 held out, 640x480; no GT mesh)"
         else:
             if not REPLICA.is_dir():
                 log.warning("replica skipped: %s not present", REPLICA)
                 continue
             seq = ReplicaSequence(render_replica(REPLICA, work / "replica_office0", args.replica_stride))
             title = f"Replica office0 GT mesh along every {args.replica_stride}th real pose (1200x680)"
-        r = bench_dataset(ds, seq, profile, work, args.frames, args.tsdf_voxel)
+        out = Path(args.out)
+        r = bench_dataset(ds, seq, profile, work, args.frames, args.tsdf_voxel,
+                          picture=out.parent / f"{out.name}_{ds}.png")
         r["title"] = title
         results.append(r)
         tables.append(format_rows(title, r["rows"]))

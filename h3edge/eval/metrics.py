@@ -71,3 +71,54 @@ def accuracy_completion(recon_pts: np.ndarray, gt_pts: np.ndarray, ratio_thresho
     d_comp, _ = cKDTree(recon_pts).query(gt_pts, workers=-1)
     return {"accuracy": float(np.mean(d_acc)), "completion": float(np.mean(d_comp)),
             "completion_ratio": float(np.mean(d_comp < ratio_threshold))}
+
+
+def depth_error_shares(pred: np.ndarray, gt: np.ndarray, threshold: float = 0.05) -> dict[str, float]:
+    """Where a render's depth goes wrong, over valid GT pixels (gt > 0): the share rendered more
+    than ``threshold`` metres *in front of* the sensor depth (inflated silhouettes, phantom surfaces),
+    the share more than ``threshold`` *behind* it (holes seen through, eroded objects), the share not
+    rendered at all, and the median |error| (metres) over the pixels rendered."""
+    valid = (gt > 0) & np.isfinite(gt)
+    n = int(valid.sum())
+    if n == 0:
+        return {"front_share": float("nan"), "behind_share": float("nan"), "missing_share": float("nan"),
+                "median_abs_m": float("nan")}
+    p = np.where(np.isfinite(pred), pred, 0.0)[valid]
+    g = gt[valid]
+    hit = p > 0
+    err = p - g
+    return {"front_share": float(np.sum(hit & (err < -threshold)) / n),
+            "behind_share": float(np.sum(hit & (err > threshold)) / n),
+            "missing_share": float(np.sum(~hit) / n),
+            "median_abs_m": float(np.median(np.abs(err[hit]))) if hit.any() else float("nan")}
+
+
+def depth_error_map(pred: np.ndarray, gt: np.ndarray, threshold: float = 0.05) -> np.ndarray:
+    """Picture of :func:`depth_error_shares` (H, W, 3) uint8: red = rendered > ``threshold`` in front
+    of the sensor depth, blue = > ``threshold`` behind it, grey = within, white = valid depth not
+    rendered, black = no sensor depth."""
+    out = np.zeros(gt.shape + (3,), np.uint8)
+    valid = (gt > 0) & np.isfinite(gt)
+    p = np.where(np.isfinite(pred), pred, 0.0)
+    hit = valid & (p > 0)
+    err = p - gt
+    out[valid & ~hit] = (255, 255, 255)
+    out[hit] = (190, 190, 190)
+    out[hit & (err < -threshold)] = (220, 30, 30)
+    out[hit & (err > threshold)] = (30, 60, 230)
+    return out
+
+
+def mesh_to_mesh(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 200_000, threshold: float = 0.05,
+                 seed: int = 0) -> dict[str, float]:
+    """Surface distances between two meshes, both directions (metres): from ``n`` area-uniform
+    samples of each to the other's samples; mean and share farther than ``threshold``.
+    ``a_to_b`` is the accuracy-like direction when ``b`` is the reference."""
+    pa, pb = sample_surface(a, n, seed), sample_surface(b, n, seed + 1)
+    if len(pa) == 0 or len(pb) == 0:
+        return {"a_to_b_mean": float("inf"), "b_to_a_mean": float("inf"), "a_to_b_far_share": 1.0,
+                "b_to_a_far_share": 1.0}
+    d_ab, _ = cKDTree(pb).query(pa, workers=-1)
+    d_ba, _ = cKDTree(pa).query(pb, workers=-1)
+    return {"a_to_b_mean": float(np.mean(d_ab)), "b_to_a_mean": float(np.mean(d_ba)),
+            "a_to_b_far_share": float(np.mean(d_ab > threshold)), "b_to_a_far_share": float(np.mean(d_ba > threshold))}

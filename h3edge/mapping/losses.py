@@ -94,6 +94,12 @@ def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: 
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """(L_fs, L_sdf) over rays with valid depth; sdf (R, S) in truncation units, depths in metres.
 
+    Units as the authors' code (Vox-Fusion / H2-Mapping ``get_sdf_loss``) has them, which their
+    loss weights (sdf 50000, free space 10) assume: L_fs on the SDF in truncation units,
+    (s - 1)^2; L_sdf on the implied surface depth in metres, (z + s * tr - D)^2 = tr^2 (s - t)^2.
+    Taken in truncation units, L_sdf would weigh 1 / tr^2 = 400 times more against free space,
+    rendering and depth than the authors' settings do, and free-space carving would not count.
+
     Samples are in ray order and the valid ones (``mask``) form a prefix of each row, as the
     sampler packs them, so a sign change is a change between neighbouring samples.
     """
@@ -116,4 +122,4 @@ def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: 
             return z
         return ((err * sel).sum(1)[rays] / cnt[rays]).mean()
 
-    return per_ray_mean((sdf - 1.0) ** 2, fs), per_ray_mean((sdf - target) ** 2, tr)
+    return per_ray_mean((sdf - 1.0) ** 2, fs), per_ray_mean((truncation * (sdf - target)) ** 2, tr)

@@ -57,8 +57,10 @@ def write_renders(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> N
 
 
 def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None = None, stride: int = 1,
-                evaluate_map: bool = True, settings=None) -> dict:
-    """Map ``seq`` with ``profile`` and write the run directory; returns the run summary."""
+                evaluate_map: bool = True, settings=None, reference=None) -> dict:
+    """Map ``seq`` with ``profile`` and write the run directory; returns the run summary.
+    ``reference``: a mesh to compare the map's mesh with (a TSDF of the same frames), for data
+    without a GT mesh."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = settings or profile.map_settings()
@@ -99,7 +101,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
            "mesh_faces": len(mesh.faces), "mapping_wall_s": map_s}
     metrics_md = ""
     if evaluate_map:
-        res = evaluate(seq, renderer=mapper.renderer(), mesh=mesh, cfg=profile.eval)
+        res = evaluate(seq, renderer=mapper.renderer(), mesh=mesh, cfg=profile.eval, reference=reference)
         metrics_md = format_table(res, f"map of {seq.root.name} ({profile.name})")
         (out / "metrics.json").write_text(json.dumps(res, indent=1) + "\n")
         (out / "metrics.md").write_text(metrics_md + "\n")

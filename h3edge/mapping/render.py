@@ -40,6 +40,16 @@ class RenderConfig:
     fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
     chunk: int = 65536  # rays per fine-stage batch
     retries: int = 2  # marches past a crossing that got no rendering weight
+    # a fine window renders only where its weights sum to this: the field comes within ~7 mm of a
+    # zero crossing (alpha = sigma(s/beta) sigma(-s/beta) is 0.25 at s = 0 and 0.045 at s/beta = 3).
+    # Windows with no surface in them (a prior crossing the residual moved away) march on instead
+    # of rendering at their weighted mean depth.
+    min_weight: float = 0.05
+    # rays the prior march leaves without a weighted surface (the residual moved it where the prior
+    # has no crossing) search the full SDF at this step through the allocated voxels they cross,
+    # then render the window at its first crossing (0: off, such rays render empty)
+    fallback_step: float = 0.01
+    fallback_chunk: int = 2048  # rays per fallback batch (x up to (far - near) / step samples)
     max_pixels: int = 1920 * 1080  # larger requests are refused
 
 
@@ -104,6 +114,7 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
     t_hit = prior_crossings(origin, dirs, voxels, cfg)
     lookup = PriorLookup(voxels)
     todo = np.flatnonzero(t_hit > 0)
+    missed = np.zeros(0, np.int64)
     for attempt in range(cfg.retries + 1):
         missed = _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:
@@ -112,7 +123,44 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
                                 near=t_hit[missed] + (cfg.fine_samples // 2 + 1) * cfg.fine_step)
         t_hit[missed] = t_new
         todo = missed[t_new > 0]
+    if cfg.fallback_step > 0:
+        # every ray still empty: no prior crossing at all, or none that carried weight
+        empty = np.flatnonzero(depth == 0)
+        if len(empty):
+            t_hit[empty] = field_crossings(field_, lookup, origin, dirs[empty], cfg, dev)
+            found = empty[t_hit[empty] > 0]
+            if len(found):
+                _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, found, beta, cfg, dev, depth, color)
     return color, depth
+
+
+@torch.no_grad()
+def field_crossings(field_, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig, dev
+                    ) -> np.ndarray:
+    """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
+    ray, sampled every ``cfg.fallback_step`` through the allocated voxels between near and far; only
+    samples inside voxels are evaluated, and a crossing needs two consecutive ones."""
+    out = np.full(len(dirs), -1.0)
+    ts = np.arange(cfg.near, cfg.far, cfg.fallback_step, dtype=np.float64)
+    o = np.asarray(origin, np.float64)
+    for s in range(0, len(dirs), cfg.fallback_chunk):
+        d = dirs[s:s + cfg.fallback_chunk]
+        pts = (o[None, None, :] + d[:, None, :] * ts[None, :, None]).reshape(-1, 3)
+        prior, vox = lookup(pts)
+        inside = vox >= 0
+        if not inside.any():
+            continue
+        sdf = np.full(len(pts), np.nan)
+        p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
+        sdf[inside] = prior[inside] + field_.sdf_mlp(field_.geo_grid(p))[:, 0].float().cpu().numpy()
+        a = sdf.reshape(len(d), len(ts))
+        with np.errstate(invalid="ignore"):
+            cross = (a[:, :-1] > 0) & (a[:, 1:] <= 0)
+        rows = np.flatnonzero(cross.any(1))
+        k = cross[rows].argmax(1)
+        a0, a1 = a[rows, k], a[rows, k + 1]
+        out[s + rows] = ts[k] + cfg.fallback_step * a0 / (a0 - a1)
+    return out
 
 
 def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, dev, depth, color) -> np.ndarray:
@@ -128,7 +176,7 @@ def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, de
         prior, vox = lookup(pts.cpu().numpy())
         sdf, inside = field_.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
                                                      torch.from_numpy(vox >= 0).to(dev)))
-        out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape))
+        out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape), cfg.min_weight)
         hit = out.hit
         surf = o + d[hit] * out.depth[hit, None]
         col = field_.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf

@@ -3,10 +3,15 @@
 Training samples (per ray, z-depth units since ray directions have camera z = 1):
 - ``band_samples`` evenly spaced at ``step`` around the measured depth (the truncation band,
   where the render weights live: colour and depth are rendered from these);
-- ``free_samples`` stratified between ``near`` and depth - truncation (free-space loss).
+- ``free_samples`` between ``near`` and depth - truncation (free-space loss): with
+  ``free_in_voxels`` drawn among ``free_candidates`` stratified candidates that fall inside
+  allocated leaf voxels (where the field exists and a phantom surface could be), otherwise
+  stratified over the whole range.
 Only samples inside allocated leaf voxels count, as in the paper. This concentrates the paper's
-budget (1 cm steps through every voxel the ray crosses) where the losses act; the full-ray
-sampling is what novel-view rendering uses.
+budget (1 cm steps through every voxel the ray crosses) where the losses act: the paper's samples
+in front of a surface all lie in voxels the ray crosses, and so do these; drawn over the whole
+range, most free-space samples fell outside every voxel and the space between thin structures
+(chair slats) was never carved. The full-ray sampling is what novel-view rendering uses.
 """
 
 from __future__ import annotations
@@ -28,6 +33,10 @@ class TrainConfig:
     step: float = 0.01  # m between band samples (the paper's 1 cm)
     band_samples: int = 11  # covers +-5 cm = the truncation band
     free_samples: int = 8
+    # free-space samples where the field lives, inside allocated voxels (as the paper's sampler):
+    # measured no better than stratified samples on real Kinect data (docs/silhouettes.md), off
+    free_in_voxels: bool = False
+    free_candidates: int = 64  # stratified candidates per ray the in-voxel free samples are drawn from
     near: float = 0.05
     surface_aware: bool = True
     weights: LossWeights = field(default_factory=LossWeights)
@@ -54,6 +63,28 @@ def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float,
     return torch.cat([free, band], 1), cfg.free_samples
 
 
+def free_depths_in_voxels(rays: "RayBatch", voxels: VoxelMap, cfg: TrainConfig, truncation: float,
+                          generator: torch.Generator | None = None) -> torch.Tensor:
+    """``cfg.free_samples`` z-depths per ray (R, F), sorted, between ``near`` and depth - truncation,
+    inside allocated voxels where the ray has enough of them: picked at random among
+    ``cfg.free_candidates`` stratified candidates that fall in a voxel (rays with fewer keep some
+    candidates outside, which the voxel mask drops)."""
+    from h3edge.mapping.render import PriorLookup
+
+    depth = rays.depth
+    r, m, k = len(depth), cfg.free_candidates, cfg.free_samples
+    dev, dt = depth.device, depth.dtype
+    far = (depth - truncation).clamp(min=cfg.near)
+    u = torch.arange(m, device=dev, dtype=dt) + torch.rand(r, m, generator=generator, device=dev, dtype=dt)
+    cand = cfg.near + (far - cfg.near)[:, None] * u / m  # (R, M)
+    pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * cand[..., None]
+    _, vox = PriorLookup(voxels)(pts.reshape(-1, 3).detach().cpu().numpy())
+    inside = torch.from_numpy(vox.reshape(r, m) >= 0).to(dev)
+    key = torch.rand(r, m, generator=generator, device=dev, dtype=dt) + (~inside).to(dt)  # inside first
+    pick = torch.topk(key, k, dim=1, largest=False).indices
+    return torch.sort(cand.gather(1, pick), dim=1).values
+
+
 def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
                cfg: TrainConfig, generator: torch.Generator | None = None,
                prior_opt: PriorAdam | None = None) -> dict[str, float]:
@@ -61,6 +92,8 @@ def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch
     lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows."""
     tr = voxels.cfg.truncation
     t, b0 = sample_depths(rays.depth, cfg, tr, generator)
+    if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
+        t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, generator), t[:, b0:]], 1)
     r, s = t.shape
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
     flat = pts.reshape(-1, 3)

@@ -9,10 +9,14 @@ sorted index with ``searchsorted``, so the map is unbounded in space. Inserting 
 O(k log k) plus an O(map) memory move, never a rebuild. A voxel cap bounds memory; voxels past it
 are refused and counted.
 
-SDF priors are stored in truncation units (metres / ``truncation``), as the authors do. A new
-voxel's 8 vertices are initialised once, projectively: prior = (measured depth - vertex z) /
-truncation, only when all 8 corners project inside the image onto valid depth and lie within
-``init_range`` of the surface. The coarse SDF of a point is the trilinear interpolation of its
+SDF priors are stored in truncation units (metres / ``truncation``), as the authors do. A vertex
+is initialised once, projectively: prior = (measured depth - vertex z) / truncation, when it lies
+within ``init_range`` of the surface (or anywhere in front of it, truncated to ``prior_clamp``, when
+that is set) and projects inside the image onto valid depth: with ``prior_rule = "voxel"`` only when all 8 corners of a voxel do (the paper),
+with ``"vertex"`` each vertex on its own away from depth edges. With ``prior_retry`` every frame
+retries the unset vertices of the voxels it observes, as the authors' code does (one try at
+allocation fails most of the time on real depth, which has holes at every edge). Until then a
+vertex reads ``unset_prior``. The coarse SDF of a point is the trilinear interpolation of its
 voxel's 8 priors.
 """
 
@@ -88,6 +92,24 @@ class VoxelConfig:
     truncation: float = 0.05  # m, SDF truncation = the unit SDF priors are stored in
     init_range: float = 0.245  # m, sqrt(6) * voxel: vertices farther from the surface stay unset
     max_voxels: int = 200_000  # cap (the authors' num_vertexes budget); memory bound
+    # Retry, in every frame, the unset vertices of the voxels that frame observes (the authors'
+    # code does; one try at allocation leaves most priors unset on real depth with holes)
+    prior_retry: bool = True
+    # "voxel": a voxel's 8 priors are set together, only when all 8 corners project onto valid
+    # depth (paper / authors); "vertex": each vertex on its own, skipping pixels at a depth edge
+    prior_rule: str = "voxel"
+    # 0: the paper's rule, vertices more than init_range from the surface stay unset. c > 0: priors
+    # are the projective SDF truncated to [-c, c] truncation units, as in TSDF fusion, and a vertex
+    # seen more than init_range in front of the surface is set to +c (free space: the free-space
+    # loss's own target at c = 1) instead of being left to read as a surface. A departure from the
+    # paper, measured on real Kinect data (docs/silhouettes.md): -0.6 points of pixels in front.
+    prior_clamp: float = 1.0
+    # the value an unset prior reads as, truncation units (0 reads as "on the surface")
+    unset_prior: float = 0.0
+
+    def __post_init__(self):
+        if self.prior_rule not in ("voxel", "vertex"):
+            raise ValueError(f"prior_rule must be voxel or vertex, got {self.prior_rule!r}")
 
 
 class VoxelMap:
@@ -152,7 +174,13 @@ class VoxelMap:
             new = new[:max(room, 0)]
         if len(new):
             self._insert(new)
-            self._init_priors(new, depth, intr, c2w)
+        if self.cfg.prior_retry:
+            seen = cand[self.voxels.find(cand) >= 0]
+            todo = seen[~self.prior_set[self.voxel_vertices[self.voxels.find(seen)]].all(1)]
+        else:
+            todo = new
+        if len(todo):
+            self._init_priors(todo, depth, intr, c2w)
         return new
 
     def _insert(self, new_keys: np.ndarray) -> None:
@@ -164,7 +192,7 @@ class VoxelMap:
         fresh_ids = self.vertices.add(fresh)
         ids[missing] = fresh_ids[np.searchsorted(fresh, corner_keys[missing])]
         self.voxel_vertices = np.concatenate([self.voxel_vertices, ids.reshape(-1, 8)])
-        grown = torch.zeros(len(fresh), device=self.device)
+        grown = torch.full((len(fresh),), float(self.cfg.unset_prior), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
 
@@ -179,10 +207,19 @@ class VoxelMap:
         vi = np.clip(np.nan_to_num(uv[:, 1]), 0, intr.height - 1).astype(int)
         d[inside] = depth[vi[inside], ui[inside]]
         sdf = d - z
-        good = inside & (d > 0) & (np.abs(sdf) < self.cfg.init_range)
-        voxel_ok = good.reshape(-1, 8).all(1)
-        targets = vid[voxel_ok].reshape(-1)
-        values = (sdf.reshape(-1, 8)[voxel_ok].reshape(-1)) / self.cfg.truncation
+        with np.errstate(invalid="ignore"):
+            near = np.abs(sdf) < self.cfg.init_range
+            good = inside & (d > 0) & (near | ((sdf > 0) if self.cfg.prior_clamp > 0 else False))
+        if self.cfg.prior_rule == "voxel":
+            ok = np.repeat(good.reshape(-1, 8).all(1), 8)
+        else:  # each vertex on its own, away from depth edges (the projective SDF jumps there)
+            ok = good & ~_depth_edge(depth, self.cfg.truncation)[vi, ui]
+        targets = vid.reshape(-1)[ok]
+        values = sdf[ok] / self.cfg.truncation
+        if self.cfg.prior_clamp > 0:
+            values = np.clip(values, -self.cfg.prior_clamp, self.cfg.prior_clamp)
+        targets, first = np.unique(targets, return_index=True)  # a vertex shared by voxels: once
+        values = values[first]
         fresh = ~self.prior_set[targets]  # set once per vertex
         if fresh.any():
             t = torch.from_numpy(targets[fresh]).to(self.device)
@@ -242,6 +279,18 @@ class VoxelMap:
         grid = np.full(tuple(ijk.max(0) - o + 1), -1, np.int32)
         grid[tuple((ijk - o).T)] = np.arange(len(ijk), dtype=np.int32)
         return o, grid
+
+
+def _depth_edge(depth: np.ndarray, jump: float) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood spans more than ``jump`` metres of valid depth, or touches a hole."""
+    import cv2
+
+    d = depth.astype(np.float32)
+    hole = d <= 0
+    hi = cv2.dilate(np.where(hole, 0, d), np.ones((3, 3), np.uint8))
+    lo = cv2.erode(np.where(hole, np.float32(1e6), d), np.ones((3, 3), np.uint8))
+    near_hole = cv2.dilate(hole.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return (hi - lo > jump) | near_hole
 
 
 class PriorAdam:

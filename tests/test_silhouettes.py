@@ -1,0 +1,164 @@
+"""Silhouettes on real-like depth: a slatted chair back in front of a wall, Kinect-like depth
+(holes at every depth edge, axial noise). Each root cause of the inflated silhouettes that real
+data showed (issue 15) has a check here that fails without its fix:
+
+- SDF priors tried only once, when a voxel is allocated: on depth with holes at every edge most
+  voxels by the slats never get their priors (``voxels.prior_retry``);
+- the renderer accepted a fine window with (almost) no rendering weight as a surface, at the
+  weights' mean depth, where the prior march had stopped on a phantom crossing
+  (``render.min_weight``), and rays whose surface the prior misses need the full-SDF fallback
+  (``render.fallback_step``);
+- projective priors behind a silhouette were written down to -init_range (24.5 cm behind the
+  surface), a thick shadow; truncated like a TSDF (``voxels.prior_clamp``) they are not.
+(The SDF loss's units, the largest single fix, are checked in ``test_rendering_losses``.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+from h3edge.eval.metrics import depth_error_shares
+from h3edge.geometry.camera import Intrinsics, look_at
+from h3edge.geometry.raycast import MeshRaycaster
+from h3edge.io.sequence import Frame
+from h3edge.mapping.field import FieldConfig
+from h3edge.mapping.keyframes import KeyframeConfig
+from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+from h3edge.mapping.render import RenderConfig
+from h3edge.mapping.voxels import VoxelConfig
+from h3edge.sim.sensor import SensorModel, degrade_depth
+
+INTR = Intrinsics(320, 240, 280.0, 280.0, 160.0, 120.0)
+SLAT_X = np.arange(-0.30, 0.31, 0.06)  # 3 cm slats, 3 cm gaps
+
+
+def slatted_scene(slats: bool = True) -> trimesh.Trimesh:
+    """A wall at y = 2 m, a floor, and 0.8 m in front of the wall either vertical slats (3 x 2 x 60 cm,
+    3 cm apart) or one solid block of the same outline (63 x 20 x 60 cm)."""
+    parts = [trimesh.creation.box((4.0, 0.05, 2.5), trimesh.transformations.translation_matrix((0, 2.025, 1.25))),
+             trimesh.creation.box((4.0, 4.0, 0.05), trimesh.transformations.translation_matrix((0, 0.5, -0.025)))]
+    if slats:
+        for x in SLAT_X:
+            parts.append(trimesh.creation.box((0.03, 0.02, 0.6), trimesh.transformations.translation_matrix((x, 1.2, 0.9))))
+    else:
+        parts.append(trimesh.creation.box((0.63, 0.2, 0.6), trimesh.transformations.translation_matrix((0, 1.3, 0.9))))
+    return trimesh.util.concatenate(parts)
+
+
+def frames(mesh: trimesh.Trimesh, n: int, heldout: bool = False, noisy: bool = True) -> list[Frame]:
+    """Views from 1 m in front of the slats, sweeping sideways; held-out views sit between them."""
+    caster = MeshRaycaster(mesh.vertices, mesh.faces)
+    rng = np.random.default_rng(1 if heldout else 0)
+    out = []
+    for i in range(n):
+        s = (i + (0.5 if heldout else 0.0)) / max(n - 1, 1)
+        eye = np.array([-0.6 + 1.2 * s, 0.1, 1.0 + 0.15 * np.sin(3 * s)])
+        pose = look_at(eye, np.array([0.0, 1.6, 0.85]))
+        hits = caster.hits(INTR, pose)
+        shade = np.where(hits.prim[..., None] < 24, 200, 90).astype(np.uint8)  # wall/floor light, slats dark
+        color = np.repeat(shade, 3, -1)
+        color[..., 0] = np.where(hits.valid, color[..., 0], 0)
+        depth = hits.depth
+        if noisy:
+            depth = degrade_depth(depth, hits.cos_incidence, SensorModel(depth_noise=True, missing_depth=True,
+                                                                         dropout=0.0), rng)
+        out.append(Frame(i, float(i) / 30, color, depth.astype(np.float32), pose, INTR))
+    return out
+
+
+SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=2048, iterations=2, extent=6.4),
+                       voxels=VoxelConfig(min_points=3),
+                       field=FieldConfig(sdf_layers=2, geo_log2_table=16, tex_log2_table=16),
+                       keyframes=KeyframeConfig(stored_pixels=8000))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    mesh = slatted_scene()
+    return frames(mesh, 16), frames(mesh, 15, heldout=True, noisy=False)
+
+
+def mapped(train, settings) -> Mapper:
+    m = Mapper(settings)
+    for f in train:
+        m.process(f)
+    return m
+
+
+def front_share(m: Mapper, views, render: RenderConfig | None = None) -> float:
+    """Mean share of valid pixels rendered > 5 cm in front of the true depth, over held-out views."""
+    view = m.view()
+    if render is not None:
+        view.render_cfg = render
+    return float(np.mean([depth_error_shares(view.render(f.intrinsics, f.pose)[1], f.depth)["front_share"]
+                          for f in views[3:12:2]]))
+
+
+@pytest.fixture(scope="module")
+def fixed(scene):
+    return mapped(scene[0], SETTINGS)
+
+
+@pytest.fixture(scope="module")
+def block():
+    mesh = slatted_scene(slats=False)
+    train, held = frames(mesh, 16), frames(mesh, 15, heldout=True, noisy=False)
+    return held, mapped(train, SETTINGS)
+
+
+OLD = dataclasses.replace(SETTINGS, voxels=dataclasses.replace(SETTINGS.voxels, prior_retry=False, prior_clamp=0.0),
+                          render=dataclasses.replace(SETTINGS.render, min_weight=1e-6, fallback_step=0.0))
+
+
+def test_priors_are_retried_until_set(scene, fixed):
+    """One try at allocation leaves most priors by the slats unset; retrying in later frames sets them."""
+    once = mapped(scene[0], dataclasses.replace(SETTINGS, voxels=dataclasses.replace(SETTINGS.voxels,
+                                                                                      prior_retry=False)))
+    set_once, set_retried = once.voxels.prior_set.mean(), fixed.voxels.prior_set.mean()
+    assert set_retried > set_once + 0.15, (set_once, set_retried)
+    unset_voxels = (~fixed.voxels.prior_set[fixed.voxels.voxel_vertices]).all(1).mean()
+    assert unset_voxels < 0.25
+
+
+def test_no_halo_around_a_solid_object(block):
+    """The silhouette of a block in front of a wall renders where it is: few held-out pixels more
+    than 5 cm in front of the true depth. With the old priors and renderer (one try, no truncation,
+    any weight taken as a surface) the same scene has a halo (measured 4.8 % vs 1.3 %)."""
+    held, m = block
+    assert front_share(m, held) < 0.025
+    old_m = mapped(frames(slatted_scene(slats=False), 16), OLD)
+    assert front_share(old_m, held) > 0.035
+
+
+def test_renderer_needs_weight_and_falls_back_to_the_field(block):
+    """On one map: a renderer that takes a window without weight as a surface puts more pixels in
+    front of the surface; without the full-SDF fallback, rays whose surface the prior misses
+    render empty."""
+    held, m = block
+    good = front_share(m, held)
+    loose = front_share(m, held, dataclasses.replace(m.settings.render, min_weight=1e-6, fallback_step=0.0))
+    assert loose > good + 0.005, (good, loose)
+    view = m.view()
+    view.render_cfg = dataclasses.replace(m.settings.render, fallback_step=0.0)
+    f = held[7]
+    holes = depth_error_shares(view.render(f.intrinsics, f.pose)[1], f.depth)["missing_share"]
+    filled = depth_error_shares(m.render(f.intrinsics, f.pose)[1], f.depth)["missing_share"]
+    assert filled <= holes and filled < 0.005
+
+
+@pytest.mark.xfail(strict=True, reason="open (issue 15): 3 cm gaps between slats are still filled by the field")
+def test_slat_gaps_are_seen_through(scene, fixed):
+    """Pixels in the gaps between slats render at the wall, not at the slats (no fused blob)."""
+    f = scene[1][7]
+    _, depth = fixed.render(f.intrinsics, f.pose)
+    gap = (f.depth > 1.9) & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None]
+    assert np.mean(np.abs(depth[gap] - f.depth[gap]) < 0.05) > 0.9
+
+
+def test_defaults_are_the_fixed_ones():
+    assert RenderConfig().min_weight >= 0.01 and RenderConfig().fallback_step > 0
+    assert VoxelConfig().prior_retry and VoxelConfig().prior_clamp > 0
