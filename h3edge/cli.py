@@ -404,14 +404,13 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from h3edge.errors import InputError
 
+    # one line and an exit status, no traceback: bad input or an optional part not installed (the
+    # eval extra, depthai) is 2 (a configuration error: systemd does not restart), no zenoh is 1
     try:
         return args.func(args)
-    except InputError as e:
+    except (InputError, ConnectionError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
-    except ConnectionError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        return 1 if isinstance(e, ConnectionError) else 2
 
 
 if __name__ == "__main__":

@@ -56,6 +56,10 @@ def test_maps_streamed_scene(served):
     assert status["map"]["voxels"] > 100 and status["map"]["keyframes"] >= 1
     assert status["memory"]["total_bytes"] > 0 and status["memory"]["budget_bytes"] == 512 << 20
     assert status["mapper_alive"]
+    inf = status["inference"]  # what the mapper and the query decoders run on
+    assert inf["mapping_device"] == "cpu" and inf["decoders"] in ("onnx", "torch")
+    if inf["decoders"] == "onnx":
+        assert inf["active"] and inf["onnxruntime"].startswith("onnxruntime")
 
 
 def test_status_is_fast(served):
@@ -126,6 +130,9 @@ def test_profile_query(served):
     p = json.loads(query(session, KEYS.profile))
     live = load_document("zenoh:test", svc.client_config())  # what `h3edge profile report zenoh:test` reads
     assert live["profile"] == "service-test" and "pose association" in report(live)
+    assert live["inference"]["mapping_device"] == "cpu"
+    if live["inference"]["decoders"] == "onnx":
+        assert "query decoders on CPUExecutionProvider" in report(live)
     assert {"read", "priors", "keyframes", "training", "frame", "ingest", "queue_wait", "association",
             "frame_delay"} <= set(p["components"])
     assert "map training" in p["table"]

@@ -29,7 +29,7 @@ from h3edge.config import load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.render import PriorLookup, prior_crossings
+from h3edge.mapping.render import PriorLookup
 
 log = logging.getLogger(__name__)
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes_redkitchen_dev"

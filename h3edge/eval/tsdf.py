@@ -1,9 +1,10 @@
 """Classical TSDF fusion of a sequence (Open3D's ``VoxelBlockGrid``, CPU): the peer h3edge is
 compared with, and the reference mesh for datasets that have no ground-truth mesh.
 
-Open3D puts pixel centres on integer coordinates; h3edge's convention puts pixel (u, v)'s centre
-at (u + 0.5, v + 0.5) (:mod:`h3edge.geometry.camera`), so the intrinsics handed to Open3D have
-cx - 0.5, cy - 0.5. Needs the ``eval`` extra.
+Open3D's integration reads the depth pixel at the integer part of the projected coordinate, so a
+pixel (u, v) covers [u, u + 1) x [v, v + 1) as in h3edge's convention (:mod:`h3edge.geometry.camera`)
+and the intrinsics go to Open3D unchanged (measured: shifting cx, cy by -0.5 raised the simulated
+scene's held-out Depth L1 from 0.31 to 0.56 cm). Needs the ``eval`` extra.
 """
 
 from __future__ import annotations
@@ -26,10 +27,7 @@ def fuse_tsdf(seq: Sequence, voxel: float = 0.01, frames: int | None = None, tru
     dev = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
                                         ((1), (1), (3)), voxel, 16, 100_000, dev)
-    K = seq.intrinsics.K.astype(np.float64).copy()
-    K[0, 2] -= 0.5
-    K[1, 2] -= 0.5
-    K = o3c.Tensor(K, o3c.float64)
+    K = o3c.Tensor(seq.intrinsics.K.astype(np.float64), o3c.float64)
     times = []
     n = len(seq) if frames is None else min(frames, len(seq))
     for i in range(n):

@@ -87,14 +87,25 @@ def _rows(doc: dict) -> list[tuple[str, dict]]:
     return [(c, comps[c]) for c in names]
 
 
+def _decoders(doc: dict) -> str:
+    """", query decoders on <providers>" from a document's ``inference`` part (older documents: "")."""
+    inf = doc.get("inference") or {}
+    if not inf:
+        return ""
+    if inf.get("decoders") != "onnx":
+        return f", query decoders in {inf.get('decoders', '?')}"
+    missing = f" (requested but missing: {', '.join(inf['missing'])})" if inf.get("missing") else ""
+    return f", query decoders on {', '.join(inf.get('active') or ['?'])} ({inf.get('onnxruntime', '?')}){missing}"
+
+
 def report(doc: dict, other: dict | None = None, fmt: str = "table") -> str:
     if fmt == "json":
         return json.dumps({"this": doc, "other": other} if other else doc, indent=1)
     head = [f"profile {doc.get('profile')} on {doc.get('device')} (host {doc.get('host')}, power mode "
-            f"{doc.get('power_mode')}), {doc.get('frames')} frames"]
+            f"{doc.get('power_mode')}), {doc.get('frames')} frames{_decoders(doc)}"]
     if other:
         head.append(f"vs profile {other.get('profile')} on {other.get('device')} (host {other.get('host')}, power "
-                    f"mode {other.get('power_mode')}), {other.get('frames')} frames")
+                    f"mode {other.get('power_mode')}), {other.get('frames')} frames{_decoders(other)}")
     cols = ["component", "median ms", "p95 ms", "count"]
     if other:
         cols += ["other median ms", "other p95 ms", "other / this"]
