@@ -46,7 +46,7 @@ def test_neighbour_allocated_when_surface_near_a_face():
 
 
 def test_priors_are_the_sdf_and_interpolate_exactly():
-    cfg = VoxelConfig(min_points=3)
+    cfg = VoxelConfig(min_points=3, prior_clamp=0.0)  # the paper's rule: untruncated projective SDF
     vm = VoxelMap(cfg)
     vm.allocate(wall_depth(), INTR, POSE)
     assert vm.prior_set.mean() > 0.5
@@ -62,6 +62,22 @@ def test_priors_are_the_sdf_and_interpolate_exactly():
     assert vm.priors.grad is not None and (vm.priors.grad != 0).sum() <= 8 * 3
     _, inside = vm.coarse_sdf(torch.tensor([[0.0, 1.0, 0.0]]))
     assert not inside.any()
+
+
+def test_priors_truncated_like_a_tsdf():
+    """prior_clamp = 1: priors are the projective SDF truncated to [-1, 1] truncation units, and a
+    vertex seen far in front of the surface reads +1 (free), not 0 (surface)."""
+    cfg = VoxelConfig(min_points=3, prior_clamp=1.0)
+    vm = VoxelMap(cfg)
+    vm.allocate(wall_depth(), INTR, POSE)
+    ijk = unpack(vm.vertex_keys[vm.prior_set])
+    y = ijk[:, 1] * cfg.voxel_size
+    expect = np.clip((WALL_Y - y) / cfg.truncation, -1.0, 1.0)
+    assert np.allclose(vm.priors.detach().numpy()[vm.prior_set], expect, atol=1e-4)
+    assert (vm.priors.detach().numpy() >= -1 - 1e-6).all() and (vm.priors.detach().numpy() <= 1 + 1e-6).all()
+    paper = VoxelMap(VoxelConfig(min_points=3, prior_clamp=0.0))
+    paper.allocate(wall_depth(), INTR, POSE)
+    assert vm.prior_set.sum() >= paper.prior_set.sum()
 
 
 def test_voxel_cap_refuses_and_counts():
