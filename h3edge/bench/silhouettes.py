@@ -29,7 +29,7 @@ from h3edge.config import load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.render import PriorLookup
+from h3edge.mapping.render import PriorLookup, first_crossing
 
 log = logging.getLogger(__name__)
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes_redkitchen_dev"
@@ -47,30 +47,25 @@ def prior_coverage(voxels) -> dict:
 @torch.no_grad()
 def dense_crossings(field_, voxels, origin: np.ndarray, dirs: np.ndarray, near: float, far: float,
                     step: float = 0.005, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
-    """First + to - crossing (z-depth, -1 none) of the full SDF and of the prior alone along each ray,
-    sampling every ``step`` from ``near`` to ``far`` inside allocated voxels."""
+    """First + to - crossing (z-depth, -1 none) of the full SDF and of the prior alone along each
+    ray, sampling every ``step`` from ``near`` to ``far`` inside allocated voxels."""
     lookup = PriorLookup(voxels)
-    ts = np.arange(near, far, step, dtype=np.float32)
+    ts = np.arange(near, far, step, dtype=np.float64)
     full_t = np.full(len(dirs), -1.0)
     prior_t = np.full(len(dirs), -1.0)
     dev = field_.geo_grid.table.device
     for s in range(0, len(dirs), chunk):
-        d = dirs[s:s + chunk].astype(np.float32)
-        pts = origin[None, None, :].astype(np.float32) + d[:, None, :] * ts[None, :, None]
-        prior, vox = lookup(pts.reshape(-1, 3))
+        d = dirs[s:s + chunk].astype(np.float64)
+        pts = (origin[None, None, :] + d[:, None, :] * ts[None, :, None]).reshape(-1, 3)
+        prior, vox = lookup(pts)
         inside = vox >= 0
+        prior = np.where(inside, prior, np.nan)
         full = prior.copy()
         if inside.any():
-            p = torch.from_numpy(pts.reshape(-1, 3)[inside]).to(dev)
+            p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
             full[inside] += field_.sdf_mlp(field_.geo_grid(p))[:, 0].cpu().numpy()
-        for arr, out in ((full, full_t), (prior, prior_t)):
-            a = np.where(inside, arr, np.nan).reshape(len(d), len(ts))
-            cross = (a[:, :-1] > 0) & (a[:, 1:] <= 0)
-            has = cross.any(1)
-            k = cross.argmax(1)
-            rows = np.flatnonzero(has)
-            a0, a1 = a[rows, k[rows]], a[rows, k[rows] + 1]
-            out[s + rows] = ts[k[rows]] + step * a0 / (a0 - a1)
+        full_t[s:s + len(d)] = first_crossing(full.reshape(len(d), len(ts)), ts)
+        prior_t[s:s + len(d)] = first_crossing(prior.reshape(len(d), len(ts)), ts)
     return full_t, prior_t
 
 

@@ -153,13 +153,20 @@ def field_crossings(field_, lookup: PriorLookup, origin: np.ndarray, dirs: np.nd
         sdf = np.full(len(pts), np.nan)
         p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
         sdf[inside] = prior[inside] + field_.sdf_mlp(field_.geo_grid(p))[:, 0].float().cpu().numpy()
-        a = sdf.reshape(len(d), len(ts))
-        with np.errstate(invalid="ignore"):
-            cross = (a[:, :-1] > 0) & (a[:, 1:] <= 0)
-        rows = np.flatnonzero(cross.any(1))
-        k = cross[rows].argmax(1)
-        a0, a1 = a[rows, k], a[rows, k + 1]
-        out[s + rows] = ts[k] + cfg.fallback_step * a0 / (a0 - a1)
+        out[s:s + len(d)] = first_crossing(sdf.reshape(len(d), len(ts)), ts)
+    return out
+
+
+def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
+    """Per row of ``values`` (R, S) sampled at the evenly spaced ``ts`` (NaN where undefined), the
+    first + to - crossing by linear interpolation between the two samples around it; -1 where none."""
+    out = np.full(len(values), -1.0)
+    with np.errstate(invalid="ignore"):
+        cross = (values[:, :-1] > 0) & (values[:, 1:] <= 0)
+    rows = np.flatnonzero(cross.any(1))
+    k = cross[rows].argmax(1)
+    a0, a1 = values[rows, k], values[rows, k + 1]
+    out[rows] = ts[k] + (ts[1] - ts[0]) * a0 / (a0 - a1)
     return out
 
 

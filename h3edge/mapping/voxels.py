@@ -12,8 +12,8 @@ are refused and counted.
 SDF priors are stored in truncation units (metres / ``truncation``), as the authors do. A vertex
 is initialised once, projectively: prior = (measured depth - vertex z) / truncation, when it lies
 within ``init_range`` of the surface (or anywhere in front of it, truncated to ``prior_clamp``, when
-that is set) and projects inside the image onto valid depth: with ``prior_rule = "voxel"`` only when all 8 corners of a voxel do (the paper),
-with ``"vertex"`` each vertex on its own away from depth edges. With ``prior_retry`` every frame
+that is set) and projects inside the image onto valid depth, only when all 8 corners of its voxel
+do (the paper). With ``prior_retry`` every frame
 retries the unset vertices of the voxels it observes, as the authors' code does (one try at
 allocation fails most of the time on real depth, which has holes at every edge). Until then a
 vertex reads ``unset_prior``. The coarse SDF of a point is the trilinear interpolation of its
@@ -95,9 +95,6 @@ class VoxelConfig:
     # Retry, in every frame, the unset vertices of the voxels that frame observes (the authors'
     # code does; one try at allocation leaves most priors unset on real depth with holes)
     prior_retry: bool = True
-    # "voxel": a voxel's 8 priors are set together, only when all 8 corners project onto valid
-    # depth (paper / authors); "vertex": each vertex on its own, skipping pixels at a depth edge
-    prior_rule: str = "voxel"
     # 0: the paper's rule, vertices more than init_range from the surface stay unset. c > 0: priors
     # are the projective SDF truncated to [-c, c] truncation units, as in TSDF fusion, and a vertex
     # seen more than init_range in front of the surface is set to +c (free space: the free-space
@@ -107,9 +104,6 @@ class VoxelConfig:
     # the value an unset prior reads as, truncation units (0 reads as "on the surface")
     unset_prior: float = 0.0
 
-    def __post_init__(self):
-        if self.prior_rule not in ("voxel", "vertex"):
-            raise ValueError(f"prior_rule must be voxel or vertex, got {self.prior_rule!r}")
 
 
 class VoxelMap:
@@ -174,11 +168,12 @@ class VoxelMap:
             new = new[:max(room, 0)]
         if len(new):
             self._insert(new)
-        if self.cfg.prior_retry:
-            seen = cand[self.voxels.find(cand) >= 0]
-            todo = seen[~self.prior_set[self.voxel_vertices[self.voxels.find(seen)]].all(1)]
+        if self.cfg.prior_retry:  # every voxel this frame sees that still has an unset vertex
+            ids = self.voxels.find(cand)
+            ids = ids[ids >= 0]
+            todo = ids[~self.prior_set[self.voxel_vertices[ids]].all(1)]
         else:
-            todo = new
+            todo = self.voxels.find(new)
         if len(todo):
             self._init_priors(todo, depth, intr, c2w)
         return new
@@ -196,8 +191,9 @@ class VoxelMap:
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
 
-    def _init_priors(self, new_keys: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        vid = self.voxel_vertices[self.voxels.find(new_keys)]  # (n, 8)
+    def _init_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
+        """Projective priors for the unset vertices of ``voxel_ids`` (see the module docstring)."""
+        vid = self.voxel_vertices[voxel_ids]  # (n, 8)
         pos = unpack(self.vertex_keys[vid.reshape(-1)]) * self.cfg.voxel_size
         uv, z = project(pos.astype(np.float64), intr, c2w)
         with np.errstate(invalid="ignore"):
@@ -210,10 +206,7 @@ class VoxelMap:
         with np.errstate(invalid="ignore"):
             near = np.abs(sdf) < self.cfg.init_range
             good = inside & (d > 0) & (near | ((sdf > 0) if self.cfg.prior_clamp > 0 else False))
-        if self.cfg.prior_rule == "voxel":
-            ok = np.repeat(good.reshape(-1, 8).all(1), 8)
-        else:  # each vertex on its own, away from depth edges (the projective SDF jumps there)
-            ok = good & ~_depth_edge(depth, self.cfg.truncation)[vi, ui]
+        ok = np.repeat(good.reshape(-1, 8).all(1), 8)  # a voxel's 8 priors together (paper)
         targets = vid.reshape(-1)[ok]
         values = sdf[ok] / self.cfg.truncation
         if self.cfg.prior_clamp > 0:
@@ -279,18 +272,6 @@ class VoxelMap:
         grid = np.full(tuple(ijk.max(0) - o + 1), -1, np.int32)
         grid[tuple((ijk - o).T)] = np.arange(len(ijk), dtype=np.int32)
         return o, grid
-
-
-def _depth_edge(depth: np.ndarray, jump: float) -> np.ndarray:
-    """Pixels whose 3x3 neighbourhood spans more than ``jump`` metres of valid depth, or touches a hole."""
-    import cv2
-
-    d = depth.astype(np.float32)
-    hole = d <= 0
-    hi = cv2.dilate(np.where(hole, 0, d), np.ones((3, 3), np.uint8))
-    lo = cv2.erode(np.where(hole, np.float32(1e6), d), np.ones((3, 3), np.uint8))
-    near_hole = cv2.dilate(hole.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    return (hi - lo > jump) | near_hole
 
 
 class PriorAdam:
