@@ -60,6 +60,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     mesh_path = Path(args.mesh) if args.mesh else seq.gt_mesh_path
     if mesh_path is None:
         raise SystemExit(f"error: {args.sequence} has no gt_mesh.ply; pass --mesh")
+    if not mesh_path.is_file():
+        raise SystemExit(f"error: --mesh {mesh_path}: no such mesh file")
     mesh = trimesh.load(mesh_path, process=False)
     cfg = load_profile(args.profile).eval
     if args.points:
@@ -71,6 +73,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         log.info("fusing a %.0f mm TSDF of the same frames as the reference mesh", 1000 * args.tsdf_voxel)
         reference, _ = fuse_tsdf(seq, args.tsdf_voxel)
     elif args.reference and args.reference != "none":
+        if not Path(args.reference).is_file():
+            raise SystemExit(f"error: --reference {args.reference}: no such mesh file (or use 'tsdf' / 'none')")
         reference = trimesh.load(args.reference, process=False)
     res = evaluate(seq, mesh=mesh, cfg=cfg, reference=reference)
     print(format_table(res, f"{mesh_path} vs {args.sequence}"))

@@ -30,6 +30,8 @@ def test_sim_make_and_eval(tmp_path):
     p = run("eval", str(out), "--points", "200000", "--reference", "tsdf", "--tsdf-voxel", "0.02",
             "--json", str(tmp_path / "r.json"))
     assert "Mesh -> reference mesh" in p.stdout and "in front / behind" in p.stdout
+    bad = run("eval", str(out), "--reference", str(tmp_path / "missing.ply"), check=False)
+    assert bad.returncode != 0 and "no such mesh file" in bad.stderr and "Traceback" not in bad.stderr
     r = json.loads((tmp_path / "r.json").read_text())["vs_reference"]
     # the GT mesh is the whole room, the TSDF only what 12 frames saw: the TSDF lies on the GT mesh
     # (200k points over the room's ~100 m2 leave a sampling floor of ~1.5 cm)
