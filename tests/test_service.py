@@ -182,6 +182,9 @@ def test_malformed_messages_are_counted_and_dropped(served):
     assert grew("malformed") == 4, d
     assert grew("stale_timestamp") == 2, d  # the old frame and the duplicate
     assert grew("malformed_pose") == 2 and grew("duplicate_pose") == 1, d  # NaN, non-rigid; the repeat
+    # poses refused are counted as poses, not as frames: mapped + dropped frames == received frames
+    assert s["poses"]["dropped"] - before["poses"].get("dropped", 0) == 3
+    assert s["frames"]["mapped"] + s["frames"]["dropped"] == s["frames"]["received"]
     assert s["frames"]["mapped"] == before["frames"]["mapped"] + 1
     assert s["last_error"] is not None and s["mapper_alive"]
     pub_f.undeclare()

@@ -147,7 +147,8 @@ class MapService:
         self._view: MapView | None = None
         self._view_time = 0.0
         self._counts = collections.Counter()  # service-level counters
-        self._drops = collections.Counter()  # service-level drop reasons
+        self._drops = collections.Counter()  # service-level frame drop reasons
+        self._pose_drops = collections.Counter()  # refused pose messages, by reason
         self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
         self._recent_received: collections.deque[float] = collections.deque(maxlen=300)
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
@@ -254,7 +255,7 @@ class MapService:
             self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {msg.timestamp_ns} ns: {why}")
 
     def _pose_drop(self, code: str, text: str) -> None:
-        self._drops[code] += 1
+        self._pose_drops[code] += 1
         self._error(code, text)
 
     def _error(self, code: str, text: str) -> None:
@@ -430,6 +431,9 @@ class MapService:
         dropped = dict(self._drops)
         for k, v in s.get("dropped", {}).items():
             dropped[k] = dropped.get(k, 0) + v
+        frames_dropped = sum(dropped.values())  # frames only: mapped + dropped never exceeds received
+        for k, v in self._pose_drops.items():
+            dropped[k] = dropped.get(k, 0) + v
 
         def rate(ts: collections.deque) -> float:
             recent = [t for t in list(ts) if now - t < 10.0]
@@ -440,8 +444,9 @@ class MapService:
                 "inference": self.inference_info(),
                 "uptime_s": round(time.time() - self.started, 1),
                 "frames": {"received": self._counts["frames_received"], "mapped": s.get("frames_mapped", 0),
-                           "dropped": sum(dropped.values()), "queued": len(self._queue)},
-                "dropped": dropped, "poses": {"received": self._counts["poses_received"], "buffered": len(self.poses)},
+                           "dropped": frames_dropped, "queued": len(self._queue)},
+                "dropped": dropped, "poses": {"received": self._counts["poses_received"], "buffered": len(self.poses),
+                                              "dropped": sum(self._pose_drops.values())},
                 "rates_hz": {"received": rate(self._recent_received), "mapped": rate(self._recent_mapped)},
                 "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
                 "map": {k: s.get(k) for k in ("voxels", "voxels_refused", "vertices", "keyframes", "keyframes_pruned",
