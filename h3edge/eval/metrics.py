@@ -73,23 +73,27 @@ def accuracy_completion(recon_pts: np.ndarray, gt_pts: np.ndarray, ratio_thresho
             "completion_ratio": float(np.mean(d_comp < ratio_threshold))}
 
 
+def _depth_error_classes(pred: np.ndarray, gt: np.ndarray, threshold: float):
+    """(valid sensor depth, rendered, > threshold in front, > threshold behind, error), all (H, W)."""
+    valid = (gt > 0) & np.isfinite(gt)
+    p = np.where(np.isfinite(pred), pred, 0.0)
+    hit = valid & (p > 0)
+    err = p - gt
+    return valid, hit, hit & (err < -threshold), hit & (err > threshold), err
+
+
 def depth_error_shares(pred: np.ndarray, gt: np.ndarray, threshold: float = 0.05) -> dict[str, float]:
     """Where a render's depth goes wrong, over valid GT pixels (gt > 0): the share rendered more
     than ``threshold`` metres *in front of* the sensor depth (inflated silhouettes, phantom surfaces),
     the share more than ``threshold`` *behind* it (holes seen through, eroded objects), the share not
     rendered at all, and the median |error| (metres) over the pixels rendered."""
-    valid = (gt > 0) & np.isfinite(gt)
+    valid, hit, front, behind, err = _depth_error_classes(pred, gt, threshold)
     n = int(valid.sum())
     if n == 0:
         return {"front_share": float("nan"), "behind_share": float("nan"), "missing_share": float("nan"),
                 "median_abs_m": float("nan")}
-    p = np.where(np.isfinite(pred), pred, 0.0)[valid]
-    g = gt[valid]
-    hit = p > 0
-    err = p - g
-    return {"front_share": float(np.sum(hit & (err < -threshold)) / n),
-            "behind_share": float(np.sum(hit & (err > threshold)) / n),
-            "missing_share": float(np.sum(~hit) / n),
+    return {"front_share": float(front.sum() / n), "behind_share": float(behind.sum() / n),
+            "missing_share": float((valid & ~hit).sum() / n),
             "median_abs_m": float(np.median(np.abs(err[hit]))) if hit.any() else float("nan")}
 
 
@@ -97,15 +101,12 @@ def depth_error_map(pred: np.ndarray, gt: np.ndarray, threshold: float = 0.05) -
     """Picture of :func:`depth_error_shares` (H, W, 3) uint8: red = rendered > ``threshold`` in front
     of the sensor depth, blue = > ``threshold`` behind it, grey = within, white = valid depth not
     rendered, black = no sensor depth."""
+    valid, hit, front, behind, _ = _depth_error_classes(pred, gt, threshold)
     out = np.zeros(gt.shape + (3,), np.uint8)
-    valid = (gt > 0) & np.isfinite(gt)
-    p = np.where(np.isfinite(pred), pred, 0.0)
-    hit = valid & (p > 0)
-    err = p - gt
     out[valid & ~hit] = (255, 255, 255)
     out[hit] = (190, 190, 190)
-    out[hit & (err < -threshold)] = (220, 30, 30)
-    out[hit & (err > threshold)] = (30, 60, 230)
+    out[front] = (220, 30, 30)
+    out[behind] = (30, 60, 230)
     return out
 
 

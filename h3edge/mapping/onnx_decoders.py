@@ -198,8 +198,8 @@ class DecoderRuntime:
             log.warning("onnxruntime execution provider(s) %s requested but not in the installed build (%s, "
                         "available: %s); query decoders run on %s", ", ".join(self.missing), onnxruntime_build(),
                         ", ".join(ort.get_available_providers()), ", ".join(names))
-        cache = Path(cfg.trt_cache_dir or cache_dir or "")
-        self.cache_dir = cache if (cfg.trt_cache_dir or cache_dir) else None
+        raw = cfg.trt_cache_dir or cache_dir
+        self.cache_dir = Path(raw) if raw else None
         self._providers: list = []
         for n in names:
             if n == "TensorrtExecutionProvider" and self.cache_dir is not None:

@@ -114,7 +114,6 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
     t_hit = prior_crossings(origin, dirs, voxels, cfg)
     lookup = PriorLookup(voxels)
     todo = np.flatnonzero(t_hit > 0)
-    missed = np.zeros(0, np.int64)
     for attempt in range(cfg.retries + 1):
         missed = _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:

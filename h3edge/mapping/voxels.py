@@ -13,8 +13,7 @@ SDF priors are stored in truncation units (metres / ``truncation``), as the auth
 is initialised once, projectively: prior = (measured depth - vertex z) / truncation, when it lies
 within ``init_range`` of the surface (or anywhere in front of it, truncated to ``prior_clamp``, when
 that is set) and projects inside the image onto valid depth, only when all 8 corners of its voxel
-do (the paper). With ``prior_retry`` every frame
-retries the unset vertices of the voxels it observes, as the authors' code does (one try at
+do (the paper). With ``prior_retry`` every frame retries the unset vertices of the voxels it observes, as the authors' code does (one try at
 allocation fails most of the time on real depth, which has holes at every edge). Until then a
 vertex reads ``unset_prior``. The coarse SDF of a point is the trilinear interpolation of its
 voxel's 8 priors.
@@ -204,15 +203,15 @@ class VoxelMap:
         d[inside] = depth[vi[inside], ui[inside]]
         sdf = d - z
         with np.errstate(invalid="ignore"):
-            near = np.abs(sdf) < self.cfg.init_range
-            good = inside & (d > 0) & (near | ((sdf > 0) if self.cfg.prior_clamp > 0 else False))
+            known = np.abs(sdf) < self.cfg.init_range
+            if self.cfg.prior_clamp > 0:  # far in front of the surface: free, set to +clamp below
+                known |= sdf > 0
+            good = inside & (d > 0) & known
         ok = np.repeat(good.reshape(-1, 8).all(1), 8)  # a voxel's 8 priors together (paper)
         targets = vid.reshape(-1)[ok]
         values = sdf[ok] / self.cfg.truncation
         if self.cfg.prior_clamp > 0:
             values = np.clip(values, -self.cfg.prior_clamp, self.cfg.prior_clamp)
-        targets, first = np.unique(targets, return_index=True)  # a vertex shared by voxels: once
-        values = values[first]
         fresh = ~self.prior_set[targets]  # set once per vertex
         if fresh.any():
             t = torch.from_numpy(targets[fresh]).to(self.device)
