@@ -105,7 +105,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     seq = open_sequence(args.sequence)
     run = run_offline(seq, profile, Path(args.out), frames=args.frames, stride=args.stride,
-                      evaluate_map=not args.no_eval)
+                      evaluate_map=not args.no_eval, camera_hz=args.camera_hz, settle_s=args.settle_s)
     _print_run(run, Path(args.out))
     return 0
 
@@ -351,6 +351,11 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
     mp.add_argument("--threads", type=int, help="torch CPU threads")
     mp.add_argument("--no-eval", action="store_true", help="skip evaluation")
+    mp.add_argument("--camera-hz", type=float, help="live replay: frames arrive at this rate, the mapper skips "
+                                                    "what it cannot keep up with and trains on keyframes between "
+                                                    "frames (default: every frame, fixed iterations)")
+    mp.add_argument("--settle-s", type=float, default=0.0,
+                    help="after the last frame, keep training on keyframes this many seconds")
     mp.set_defaults(func=_cmd_map)
 
     demo = sub.add_parser("demo", help="the whole system on loopback: service, publisher, queries, metrics")

@@ -9,6 +9,12 @@ pick the keyframes for each iteration (``keyframes``); run ``iterations``
 optimisation steps on ``rays_per_iteration`` rays drawn evenly from the current frame and the
 selected keyframes (``training``). A bad frame is dropped with a reason (logged and counted); it
 never touches the map.
+
+Between frames (:meth:`Mapper.train_between_frames`, called by the service whenever no frame
+is waiting and by the offline replay at a camera rate): one more iteration on the selected
+keyframes alone (``idle_training``), so the map keeps improving while the camera is slower than
+the mapper or the robot stands still. One call is one iteration, so a new frame waits at most
+that long.
 """
 
 from __future__ import annotations
@@ -52,6 +58,8 @@ class MapperConfig:
     min_valid_fraction: float = 0.01  # frames with less valid depth are dropped
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
+    # train on keyframes whenever no frame waits (service; offline replay at a camera rate)
+    train_between_frames: bool = True
     seed: int = 0
 
 
@@ -152,6 +160,7 @@ class Mapper:
         self.dropped: dict[str, int] = {}
         self.last_timestamp: float | None = None
         self.out_of_bound_points = 0
+        self.iterations = {"frame": 0, "between_frames": 0}  # optimisation steps, by when they ran
         self._rays_cache: dict[Intrinsics, np.ndarray] = {}
         # called on the mapping thread after every training step: where a service hands out
         # consistent snapshots without waiting for the whole frame
@@ -262,14 +271,31 @@ class Mapper:
         with self.timings.time("training"):
             for kfs in picks:
                 rays = self._sample_rays([current] + [k.payload for k in kfs])
-                losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.generator,
-                                    self.prior_opt)
-                if self.step_hook is not None:
-                    self.step_hook()
+                losses = self._step(rays, "frame")
         self.frames_mapped += 1
         self.last_timestamp = frame.timestamp
         self.timings.add("frame", time.perf_counter() - t_frame + read_seconds)
         return FrameResult(frame.index, True, new_voxels=len(new), keyframe=is_kf, losses=losses)
+
+    def train_between_frames(self) -> dict | None:
+        """One optimisation step on the keyframes the coverage rule selects, without a current
+        frame; its losses, or None when there is nothing to train on yet (or the profile turns
+        it off). Timed as ``idle_training``."""
+        if not self.cfg.train_between_frames or self.field is None or not self.keyframes.keyframes:
+            return None
+        with self.timings.time("idle_training"):
+            kfs = [k for k in self.keyframes.select() if k.payload is not None]
+            if not kfs:
+                return None
+            return self._step(self._sample_rays([k.payload for k in kfs]), "between_frames")
+
+    def _step(self, rays: RayBatch, when: str) -> dict:
+        losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.generator,
+                            self.prior_opt)
+        self.iterations[when] += 1
+        if self.step_hook is not None:
+            self.step_hook()
+        return losses
 
     def refresh_warps(self) -> None:
         """Hand the current texture classes and directions to the quasi-heterogeneous encoder."""
@@ -318,7 +344,8 @@ class Mapper:
     def stats(self) -> dict:
         kf_bytes = sum(k.payload.nbytes for k in self.keyframes.keyframes if k.payload is not None)
         grids = sum(g.table.numel() * 3 * 4 for g in self.field.hash_grids()) if self.field else 0
-        return {"frames_mapped": self.frames_mapped, "dropped": dict(self.dropped), "voxels": len(self.voxels),
+        return {"frames_mapped": self.frames_mapped, "iterations": dict(self.iterations),
+                "dropped": dict(self.dropped), "voxels": len(self.voxels),
                 "voxels_refused": self.voxels.refused, "vertices": len(self.voxels.vertex_keys),
                 "keyframes": len(self.keyframes.keyframes), "keyframes_pruned": self.keyframes.pruned,
                 "keyframes_evicted": self.keyframes.evicted,

@@ -28,18 +28,58 @@ log = logging.getLogger(__name__)
 
 
 def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, stride: int = 1,
-                 progress_every: int = 50) -> list:
-    """Feed every ``stride``-th frame (the first ``frames`` of them) to the mapper."""
+                 progress_every: int = 50, camera_hz: float | None = None, settle_s: float = 0.0,
+                 queue_depth: int = 2, clock=time.perf_counter, sleep=time.sleep) -> list:
+    """Feed every ``stride``-th frame (the first ``frames`` of them) to the mapper.
+
+    ``camera_hz`` None: every frame, one after the other, as fast as the mapper goes (the paper's
+    fixed iterations per frame). ``camera_hz`` F: a live replay, as the service sees a camera:
+    frame k arrives at k / F s of wall time; at most ``queue_depth`` arrived frames wait (older ones
+    are skipped, a ``queue_full`` result, as the service's ingest queue drops them); whenever none
+    waits the mapper trains on its keyframes (:meth:`Mapper.train_between_frames`). ``settle_s``:
+    after the last frame, keep training that long (the robot standing still). Returns one
+    :class:`~h3edge.mapping.mapper.FrameResult` per frame, skipped ones included.
+    """
+    from h3edge.mapping.mapper import FrameResult
+
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     results = []
-    t_start = time.perf_counter()
-    for n, i in enumerate(idx):
-        t0 = time.perf_counter()
+    t_start = clock()
+
+    def progress(n: int) -> None:
+        if progress_every and n % progress_every == 0:
+            log.info("%d/%d frames in, %d voxels, %d keyframes, %d iterations between frames, %.2f s/frame so far",
+                     n, len(idx), len(mapper.voxels), len(mapper.keyframes.keyframes),
+                     mapper.iterations["between_frames"], (clock() - t_start) / n)
+
+    def map_one(i: int) -> None:
+        t0 = clock()
         frame = seq[i]
-        results.append(mapper.process(frame, read_seconds=time.perf_counter() - t0))
-        if progress_every and (n + 1) % progress_every == 0:
-            log.info("mapped %d/%d frames, %d voxels, %d keyframes, %.2f s/frame so far", n + 1, len(idx),
-                     len(mapper.voxels), len(mapper.keyframes.keyframes), (time.perf_counter() - t_start) / (n + 1))
+        results.append(mapper.process(frame, read_seconds=clock() - t0))
+
+    if camera_hz is None:
+        for n, i in enumerate(idx):
+            map_one(i)
+            progress(n + 1)
+    else:
+        if camera_hz <= 0:
+            raise ValueError(f"camera rate must be > 0 Hz, got {camera_hz}")
+        nxt = 0  # position in idx of the oldest frame not yet mapped or skipped
+        while nxt < len(idx):
+            arrived = min(len(idx), int((clock() - t_start) * camera_hz) + 1)
+            if arrived > nxt:
+                for k in range(nxt, max(nxt, arrived - queue_depth)):  # overflowed the queue
+                    results.append(FrameResult(idx[k], False, "queue_full"))
+                nxt = max(nxt, arrived - queue_depth)
+                map_one(idx[nxt])
+                nxt += 1
+                progress(nxt)
+            elif mapper.train_between_frames() is None:
+                sleep(max(0.0, min(0.05, t_start + nxt / camera_hz - clock())))
+    t_end = clock() + settle_s
+    while settle_s > 0 and clock() < t_end:
+        if mapper.train_between_frames() is None:
+            break
     return results
 
 
@@ -57,10 +97,11 @@ def write_renders(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> N
 
 
 def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None = None, stride: int = 1,
-                evaluate_map: bool = True, settings=None, reference=None) -> dict:
+                evaluate_map: bool = True, settings=None, reference=None, camera_hz: float | None = None,
+                settle_s: float = 0.0) -> dict:
     """Map ``seq`` with ``profile`` and write the run directory; returns the run summary.
     ``reference``: a mesh to compare the map's mesh with (a TSDF of the same frames), for data
-    without a GT mesh."""
+    without a GT mesh. ``camera_hz`` / ``settle_s``: a live replay (:func:`map_sequence`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = settings or profile.map_settings()
@@ -70,7 +111,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     mapper.timings.sink = durations
     t0 = time.perf_counter()
     try:
-        results = map_sequence(seq, mapper, frames, stride)
+        results = map_sequence(seq, mapper, frames, stride, camera_hz=camera_hz, settle_s=settle_s)
     except BaseException:
         durations.close()  # what was logged up to the failure stays readable
         raise
@@ -98,7 +139,10 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
         indent=1) + "\n")
     run = {"sequence": str(seq.root), "profile": profile.name, "settings": dataclasses.asdict(settings),
            "frames_in": len(results), "stats": mapper.stats(), "mesh_vertices": len(mesh.vertices),
-           "mesh_faces": len(mesh.faces), "mapping_wall_s": map_s}
+           "mesh_faces": len(mesh.faces), "mapping_wall_s": map_s,
+           "replay": {"camera_hz": camera_hz, "settle_s": settle_s,
+                      "skipped": sum(1 for r in results if r.reason == "queue_full"),
+                      "iterations": dict(mapper.iterations)}}
     metrics_md = ""
     if evaluate_map:
         res = evaluate(seq, renderer=mapper.renderer(), mesh=mesh, cfg=profile.eval, reference=reference)

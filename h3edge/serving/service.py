@@ -152,6 +152,7 @@ class MapService:
         self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
         self._recent_received: collections.deque[float] = collections.deque(maxlen=300)
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
+        self._iteration_log: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=2000)
         self.last_error: dict | None = None
         self.last_checkpoint: dict | None = None
         self._last_ckpt_time = time.monotonic()
@@ -269,10 +270,22 @@ class MapService:
             self.heartbeat = time.monotonic()
             self._serve_requests()
             with self._cond:
-                if not self._queue:
-                    self._cond.wait(0.05)
                 item = self._queue.popleft() if self._queue else None
-            if item is not None:
+            if item is None:  # no frame waiting: one keyframe iteration, or a short wait
+                trained = False
+                try:
+                    trained = self.mapper.train_between_frames() is not None
+                except Exception as e:  # same policy as a frame: log, count, go on
+                    log.exception("training between frames failed")
+                    self._counts["idle_training_errors"] += 1
+                    self._error("internal_error", f"training between frames: {type(e).__name__}: {e}")
+                if trained:
+                    self._note_iterations()
+                else:
+                    with self._cond:
+                        if not self._queue and not self._stop.is_set():
+                            self._cond.wait(0.05)
+            else:
                 try:
                     self._handle(item)
                 except Exception as e:  # a bug must not take the service down: log, count, go on
@@ -280,12 +293,37 @@ class MapService:
                     self._drops["internal_error"] += 1
                     self._error("internal_error", f"{type(e).__name__}: {e}")
                 self._stats = self._collect_stats()
-            interval = self.cfg.checkpoint_interval_s
-            if interval > 0 and time.monotonic() - self._last_ckpt_time > interval and self.mapper.field is not None \
-                    and self.mapper.frames_mapped > (self.last_checkpoint or {}).get("frames_mapped", 0):
-                self._checkpoint_async()
+                self._note_iterations()
+            self._maybe_checkpoint()
         self._serve_requests()
         log.info("mapper thread stopped")
+
+    def _maybe_checkpoint(self) -> None:
+        interval = self.cfg.checkpoint_interval_s
+        if interval > 0 and time.monotonic() - self._last_ckpt_time > interval and self.mapper.field is not None \
+                and self.mapper.frames_mapped > (self.last_checkpoint or {}).get("frames_mapped", 0):
+            self._checkpoint_async()
+
+    def _note_iterations(self) -> None:
+        """Record (time, iterations so far) for the status's training rate."""
+        it = self.mapper.iterations
+        self._iteration_log.append((time.monotonic(), it["frame"], it["between_frames"]))
+
+    def training_rate(self, window_s: float = 10.0) -> dict:
+        """Optimisation steps per second over the last ``window_s`` and the share of them that ran
+        between frames (on keyframes alone)."""
+        now = time.monotonic()
+        log_ = [e for e in list(self._iteration_log) if now - e[0] <= window_s]
+        it = dict(self.mapper.iterations)
+        out = {"iterations": it, "iterations_per_s": 0.0, "between_frames_share": None}
+        if len(log_) >= 2:
+            dt = log_[-1][0] - log_[0][0]
+            d_frame, d_idle = log_[-1][1] - log_[0][1], log_[-1][2] - log_[0][2]
+            if dt > 0:
+                out["iterations_per_s"] = round((d_frame + d_idle) / dt, 2)
+            if d_frame + d_idle:
+                out["between_frames_share"] = round(d_idle / (d_frame + d_idle), 3)
+        return out
 
     def _handle(self, item: _Pending) -> None:
         self.mapper.timings.add("queue_wait", time.monotonic() - item.received)
@@ -449,6 +487,7 @@ class MapService:
                                               "dropped": sum(self._pose_drops.values())},
                 "rates_hz": {"received": rate(self._recent_received), "mapped": rate(self._recent_mapped)},
                 "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
+                "training": self.training_rate(),
                 "map": {k: s.get(k) for k in ("voxels", "voxels_refused", "vertices", "keyframes", "keyframes_pruned",
                                               "keyframes_evicted", "out_of_bound_points", "texture_classes")},
                 "memory": {"parts_bytes": s.get("memory_bytes", {}),
