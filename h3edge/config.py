@@ -9,6 +9,7 @@ the paper's value where the paper has one.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import typing
 from dataclasses import dataclass
@@ -92,3 +93,17 @@ def load_profile(path: str | Path) -> Profile:
             raise ProfileError(f"{p}: [{key}] must be a table")
         kwargs[key] = _section(typing.get_type_hints(Profile)[key], value, f"{p}: [{key}]")
     return Profile(**kwargs)
+
+
+def apply_overrides(settings: MapSettings, overrides: list[str]) -> MapSettings:
+    """``section.key=value`` overrides on :class:`MapSettings` (values parsed as JSON, else strings)."""
+    for item in overrides:
+        key, _, raw = item.partition("=")
+        section, _, name = key.partition(".")
+        try:
+            value = json.loads(raw)
+        except ValueError:
+            value = raw
+        sub = getattr(settings, section)
+        settings = dataclasses.replace(settings, **{section: dataclasses.replace(sub, **{name: value})})
+    return settings

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from h3edge.mapping.losses import depth_l1, free_space_and_sdf, rgb_l1, s3im
-from h3edge.mapping.rendering import composite, render_weights
+from h3edge.mapping.rendering import colour_samples, composite, render_weights
 
 TR = 0.05
 
@@ -39,6 +39,31 @@ def test_composite_recovers_surface_depth_and_colour():
     assert out.color[0].sum().item() == pytest.approx(1.0)
     empty = composite(torch.full((1, 5), 50.0), torch.linspace(1, 2, 5)[None], None, beta=0.05)
     assert not empty.hit.item() and empty.depth.item() == 0
+
+
+def test_colour_only_where_the_weight_is_not_negligible():
+    """Colour evaluated at the few samples that weigh (normalised weight > floor) renders the same
+    colour and colour gradient as at every sample, and is not darkened by the skipped ones."""
+    g = torch.Generator().manual_seed(0)
+    surf = 1.5 + torch.rand(64, 1, generator=g, dtype=torch.float64)
+    d = surf + 0.01 * (torch.arange(11, dtype=torch.float64) - 5)  # the band: 11 samples 1 cm apart
+    d = d + 0.004 * torch.rand(d.shape, generator=g, dtype=torch.float64)
+    sdf = (surf - d) / TR
+    mask = torch.ones_like(sdf, dtype=torch.bool)
+    col = torch.rand(64, 11, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    need = colour_samples(sdf, 0.05, mask, 1e-3)
+    assert 0.1 < need.double().mean() < 0.5  # most band samples weigh ~0 with the paper's beta
+    assert torch.equal(colour_samples(sdf, 0.05, mask, 0.0), mask)
+    full = composite(sdf, d, col, 0.05, mask)
+    part = composite(sdf, d, torch.where(need[..., None], col, torch.zeros_like(col)), 0.05, mask, color_mask=need)
+    assert torch.allclose(part.depth, full.depth) and torch.equal(part.hit, full.hit)
+    assert (part.color - full.color).abs().max() < 0.01
+    (gf,) = torch.autograd.grad(full.color.sum(), col)
+    (gp,) = torch.autograd.grad(part.color.sum(), col)
+    assert (gp - gf)[need].abs().max() < 0.01 and gf[~need].abs().max() < 0.011
+    # without renormalising over the evaluated samples the skipped ones would darken the ray
+    dark = composite(sdf, d, torch.where(need[..., None], col, torch.zeros_like(col)), 0.05, mask)
+    assert (dark.color.sum(-1) <= part.color.sum(-1) + 1e-12).all()
 
 
 def test_depth_and_rgb_l1():

@@ -11,7 +11,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io import open_sequence
 from h3edge.sim.make import make_scene
-from h3edge.sim.scene import ROOM_SIZE, build_room
+from h3edge.sim.scene import LAYOUTS, build_room
 from h3edge.sim.sensor import RoomRenderer, SensorModel, degrade_depth
 from h3edge.sim.trajectory import camera_path
 
@@ -43,10 +43,24 @@ def room():
     return build_room(0)
 
 
-def test_trajectory_stays_in_free_space(room):
-    poses = camera_path(400)
+@pytest.fixture(scope="module", params=sorted(LAYOUTS))
+def layout_room(request):
+    """(layout, its room) for both scenes: the default room and the second scene, the studio."""
+    return request.param, build_room(0, layout=request.param)
+
+
+def test_layouts_differ_and_unknown_is_refused():
+    a, b = build_room(0), build_room(0, layout="studio")
+    assert set(a.surface_names) != set(b.surface_names) and not np.array_equal(a.bounds, b.bounds)
+    with pytest.raises(ValueError, match="unknown layout"):
+        build_room(0, layout="attic")
+
+
+def test_trajectory_stays_in_free_space(layout_room):
+    layout, room = layout_room
+    poses = camera_path(400, layout)
     eyes = poses[:, :3, 3]
-    assert (eyes > 0.3).all() and (eyes < ROOM_SIZE - 0.3).all()
+    assert (eyes > room.bounds[0] + 0.3).all() and (eyes < room.bounds[1] - 0.3).all()
     for box in room.obstacles:
         inside = np.all((eyes > box.lo - 0.2) & (eyes < box.hi + 0.2), axis=1)
         assert not inside.any(), f"camera inside obstacle {box}"
@@ -54,11 +68,12 @@ def test_trajectory_stays_in_free_space(room):
     assert steps.max() < 0.15  # smooth: no jumps at the default frame count
 
 
-def test_trajectory_sees_the_whole_room(room):
+def test_trajectory_sees_the_whole_room(layout_room):
     """Over the trajectory, nearly all GT surface area is seen by some frame."""
     from h3edge.eval.cull import visible_vertices
+    layout, room = layout_room
     gt = room.gt_mesh
-    seen = visible_vertices(gt, camera_path(400), Intrinsics(160, 120, 95.3, 95.3, 80, 60), max_views=100)
+    seen = visible_vertices(gt, camera_path(400, layout), Intrinsics(160, 120, 95.3, 95.3, 80, 60), max_views=100)
     area = gt.area_faces
     seen_area = area[seen[gt.faces].all(1)].sum() / area.sum()
     assert seen_area > 0.85
@@ -76,14 +91,15 @@ def test_depth_matches_gt_mesh(tiny_scene):
         assert np.median(np.abs(d - f.depth)[ok]) < 1e-4
 
 
-def test_texture_classes_present(room):
+def test_texture_classes_present(layout_room):
     """Weak surfaces fall well under the paper's tr_weak = 0.2, striped and rich ones above it."""
     from h3edge.mapping.gradient import colour_gradient
 
+    layout, room = layout_room
     r = RoomRenderer(room)
     intr = Intrinsics(320, 240, 190.7, 190.7, 160, 120)
     per_kind = {"weak": [], "stripes": [], "rich": []}
-    for T in camera_path(40)[::4]:
+    for T in camera_path(40, layout)[::4]:
         rgb, depth, _ = r.render(intr, T)
         hits = r.raycaster.hits(intr, T)
         g = colour_gradient(rgb, depth)

@@ -1,4 +1,8 @@
-"""Benchmark: H3-Mapping's ablations on the default simulated scene (the paper's Tables II, III, Fig. 1).
+"""Benchmark: H3-Mapping's ablations on a scene (the paper's Tables II, III, Fig. 1).
+
+Scenes (``--scene``): ``default`` (the bundled simulated room), ``studio`` (the second simulated
+scene: other textures, layout and trajectory; 300 frames, 30 held out) and ``real`` (the 7-Scenes
+dev set under ``../shared/data``, when present).
 
 Every variant maps the same frames with the same seeds and budget (the profile's rays and
 iterations) and is evaluated on the same held-out and training views:
@@ -9,13 +13,19 @@ iterations) and is evaluated on the same held-out and training views:
   surface-aware SDF loss;
 - Fig. 1: held-out PSNR against iterations per frame, uniform vs quasi-heterogeneous (PNG);
 - a picture of the texture classes over the scene (the full method's mesh coloured by its voxels'
-  class, beside the real view), to look at what the classifier decided.
+  class, beside the real view), to look at what the classifier decided;
+- held-out PSNR per texture class, to see where a variant gains or loses: on the simulated
+  scenes by the class each surface was designed as (weak / stripes / rich, from ray casting the
+  scene), on every scene by the class the mapper decided for the voxel the sensor's surface point
+  lies in (weak / directional / unstructured).
+
+``--variant 'LABEL:section.key=value;...'`` adds a Table II row with those settings changed.
 
 Runs are cached per variant under ``--work`` (a run is reused when its settings and frame count
 match), so an interrupted benchmark resumes. Output: OUT.md, OUT.json, OUT_curve.png,
 OUT_classes.png.
 
-    python -m h3edge.bench.ablation [--frames N] [--iterations 1 2 4] [--out docs/ablation]
+    python -m h3edge.bench.ablation [--scene default|studio|real] [--frames N] [--iterations 1 2 4] [--out docs/ablation]
 """
 
 from __future__ import annotations
@@ -30,7 +40,8 @@ import cv2
 import numpy as np
 
 from h3edge.bench.tables import markdown_table
-from h3edge.config import Profile, load_profile
+from h3edge.config import Profile, apply_overrides, load_profile
+from h3edge.eval.metrics import psnr
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.offline import run_offline
@@ -72,23 +83,78 @@ def _cached(run_dir: Path, settings: MapSettings, frames: int | None) -> dict | 
         return None
     if run.get("settings") != json.loads(json.dumps(dataclasses.asdict(settings))) or run.get("frames_req") != frames:
         return None
-    if "metrics" not in run:
+    if "metrics" not in run or "class_psnr" not in run:
         return None
-    return {"metrics": run["metrics"], "stats": run["stats"], "components": timings["components"]}
+    return {"metrics": run["metrics"], "stats": run["stats"], "components": timings["components"],
+            "class_psnr": run["class_psnr"]}
 
 
-def run_variant(seq, profile: Profile, settings: MapSettings, run_dir: Path, frames: int | None) -> dict:
+def run_variant(seq, profile: Profile, settings: MapSettings, run_dir: Path, frames: int | None,
+                kinds_of=None) -> dict:
     hit = _cached(run_dir, settings, frames)
     if hit is not None:
         log.info("%s: cached", run_dir.name)
         return hit
     run = run_offline(seq, profile, run_dir, frames=frames, settings=settings)
+    per_class = class_psnr(run["mapper"], seq, kinds_of=kinds_of)
     # record the request so that the cache can be checked next time
     meta = json.loads((run_dir / "run.json").read_text())
     meta["frames_req"] = frames
+    meta["class_psnr"] = per_class
     (run_dir / "run.json").write_text(json.dumps(meta, indent=1, default=str) + "\n")
     return {"metrics": run["metrics"], "stats": run["stats"], "components": run["mapper"].timings.summary(),
-            "mapper": run["mapper"]}
+            "mapper": run["mapper"], "class_psnr": per_class}
+
+
+def designed_kinds(seq):
+    """Per held-out view, a function giving the designed texture kind of each pixel's surface
+    (weak / stripes / rich) of a simulated scene; None for other data."""
+    from h3edge.sim.make import SimSpec
+    from h3edge.sim.scene import build_room
+    from h3edge.sim.sensor import RoomRenderer
+
+    try:
+        spec = json.loads((Path(seq.root) / "meta.json").read_text())["spec"]
+    except (OSError, ValueError, KeyError):
+        return None
+    spec = SimSpec(**{"layout": "room", **spec})
+    room = build_room(spec.seed, layout=spec.layout)
+    caster, kinds = RoomRenderer(room).raycaster, np.array(room.surface_kinds)
+
+    def of(frame) -> np.ndarray:
+        hits = caster.hits(frame.intrinsics, frame.pose)
+        k = kinds[room.face_surface[np.maximum(hits.prim, 0)]].reshape(frame.depth.shape)
+        return np.where(hits.valid.reshape(frame.depth.shape), k, "")
+    return of
+
+
+def class_psnr(mapper, seq, views: int = 10, kinds_of=None) -> dict:
+    """Held-out PSNR over the pixels of each texture class (module doc), on ``views`` views."""
+    from h3edge.geometry.camera import backproject
+    from h3edge.mapping.texture_patterns import CLASS_NAMES
+
+    held = getattr(seq, "heldout", None)
+    src = held if held is not None and len(held) else seq
+    decided = mapper.patterns.classes(len(mapper.voxels))
+    preds, gts, masks = [], [], {}
+    for i in np.linspace(0, len(src) - 1, min(views, len(src))).round().astype(int):
+        f = src[int(i)]
+        rgb, _ = mapper.render(f.intrinsics, f.pose)
+        preds.append(rgb)
+        gts.append(f.color)
+        valid = f.depth.reshape(-1) > 0
+        vox = np.full(valid.shape, -1, np.int64)
+        vox[valid], _ = mapper.voxels.locate(backproject(f.depth, f.intrinsics, f.pose).reshape(-1, 3)[valid])
+        cls = np.where(vox >= 0, decided[np.maximum(vox, 0)], -1).reshape(f.depth.shape)
+        for c, name in CLASS_NAMES.items():
+            masks.setdefault(f"decided: {name}", []).append(cls == c)
+        if kinds_of is not None:
+            k = kinds_of(f)
+            for name in ("weak", "stripes", "rich"):
+                masks.setdefault(f"designed: {name}", []).append(k == name)
+    pred, gt = np.stack(preds), np.stack(gts)
+    return {name: {"psnr_db": psnr(pred, gt, np.stack(m)) if np.stack(m).any() else None,
+                   "pixel_share": float(np.stack(m).mean())} for name, m in masks.items()}
 
 
 def row(name: str, table: str, settings: MapSettings, res: dict) -> dict:
@@ -103,7 +169,8 @@ def row(name: str, table: str, settings: MapSettings, res: dict) -> dict:
             "frame_ms_median": comp["frame"]["median_ms"],
             "texture_ms_per_frame": (1000 * comp["texture"]["total_s"] / comp["frame"]["count"]
                                      if "texture" in comp else 0.0),
-            "keyframes": res["stats"].get("keyframes"), "texture_classes": res["stats"].get("texture_classes")}
+            "keyframes": res["stats"].get("keyframes"), "texture_classes": res["stats"].get("texture_classes"),
+            "class_psnr": res.get("class_psnr", {})}
 
 
 COLUMNS = [("variant", lambda r: r["variant"], None), ("PSNR held-out [dB]", lambda r: r["psnr_heldout_db"], 2),
@@ -115,6 +182,16 @@ COLUMNS = [("variant", lambda r: r["variant"], None), ("PSNR held-out [dB]", lam
 
 def format_table(title: str, rows: list[dict]) -> str:
     return markdown_table(title, COLUMNS, rows)
+
+
+def format_class_table(title: str, rows: list[dict]) -> str:
+    """Held-out PSNR per texture class, one column per class (share of pixels in the header)."""
+    names = [n for n in (rows[0].get("class_psnr") or {})] if rows else []
+    cols = [("variant", lambda r: r["variant"], None)]
+    for n in names:
+        share = rows[0]["class_psnr"][n]["pixel_share"]
+        cols.append((f"{n} ({100 * share:.0f} % px)", lambda r, n=n: (r.get("class_psnr") or {}).get(n, {}).get("psnr_db"), 2))
+    return markdown_table(title, cols, rows)
 
 
 def plot_curve(rows: list[dict], path: Path) -> None:
@@ -172,6 +249,9 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, nargs="+", default=[1, 2, 4], help="Fig. 1 curve points")
     ap.add_argument("--max-views", type=int, default=20, help="evaluation views per split")
     ap.add_argument("--only", nargs="+", help="run only these variants (names as printed)")
+    ap.add_argument("--scene", choices=["default", "studio", "real"], default="default")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL:SECTION.KEY=VALUE[;...]",
+                    help="one more Table II row with these settings changed")
     ap.add_argument("--work", default="out/bench_ablation")
     ap.add_argument("--out", default="docs/ablation", help="writes OUT.md, OUT.json, OUT_curve.png, OUT_classes.png")
     args = ap.parse_args(argv)
@@ -180,16 +260,29 @@ def main(argv=None) -> int:
 
     profile = load_profile(args.profile)
     profile = dataclasses.replace(profile, eval=dataclasses.replace(profile.eval, max_views=args.max_views))
-    seq = ReplicaSequence(ensure_scene(Path("out/bench_mapping/scene_default"), PRESETS["default"]))
-    work, out = Path(args.work), Path(args.out)
+    if args.scene == "real":
+        from h3edge.bench.mapping import REAL
+
+        if not REAL.is_dir():
+            log.error("%s not present", REAL)
+            return 2
+        seq = ReplicaSequence(REAL)
+    else:
+        seq = ReplicaSequence(ensure_scene(Path(f"out/bench_mapping/scene_{args.scene}"), PRESETS[args.scene]))
+    kinds_of = designed_kinds(seq)
+    work, out = Path(args.work) / args.scene, Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows, classes = [], None
-    for name, (table, settings) in variants(profile.map_settings(), args.iterations).items():
+    todo = variants(profile.map_settings(), args.iterations)
+    for v in args.variant:
+        label, _, sets = v.partition(":")
+        todo[label] = ("II", apply_overrides(profile.map_settings(), [x for x in sets.split(";") if x]))
+    for name, (table, settings) in todo.items():
         if args.only and name not in args.only:
             continue
         log.info("variant %r", name)
         slug = "".join(c if c.isalnum() else "_" for c in name).strip("_")
-        res = run_variant(seq, profile, settings, work / slug, args.frames)
+        res = run_variant(seq, profile, settings, work / slug, args.frames, kinds_of)
         rows.append(row(name, table, settings, res))
         if name == "w.R + w.W (full)" and "mapper" in res:
             classes = class_picture(res["mapper"], seq, out.with_name(out.name + "_classes.png"))
@@ -198,7 +291,9 @@ def main(argv=None) -> int:
     t3 = [r for r in rows if r["variant"] == "w.R + w.W (full)"] + [r for r in rows if r["table"] == "III"]
     curve = [r for r in rows if r["table"] == "curve" or r["variant"] in ("uniform", "w.R + w.W (full)")]
     frames = args.frames or len(seq)
-    tables = [format_table(f"Table II: quasi-heterogeneous feature grids ({profile.name}, {frames} frames)", t2),
+    tables = [format_table(f"Table II: quasi-heterogeneous feature grids ({args.scene} scene, {profile.name}, "
+                           f"{frames} frames)", t2),
+              format_class_table("Table II per texture class: held-out PSNR [dB]", t2),
               format_table("Table III: keyframe policy and surface-aware loss", t3),
               format_table("Fig. 1: held-out PSNR vs iterations per frame", sorted(
                   curve, key=lambda r: (r["quasi_heterogeneous"], r["iterations"])))]

@@ -20,6 +20,12 @@ held-out views; columns: sensor colour | h3edge | TSDF | h3edge depth error | TS
 red = > 5 cm in front of the sensor depth, blue = > 5 cm behind, grey = within, white = not
 rendered, black = no sensor depth).
 
+More h3edge rows in the same run: ``--variant 'LABEL:section.key=value;section.key=value'`` maps
+the same frames with those settings changed; ``--live-hz F [--settle-s S]`` adds a live replay
+(frames arriving at F Hz, the mapper skipping what it cannot keep up with and training on
+keyframes between frames, then S s more), to compare at equal wall time. ``wall [s]`` is each
+method's mapping time: the sum of TSDF integrations, h3edge's whole run.
+
     python -m h3edge.bench.mapping [--datasets sim replica real] [--profile x86-cpu] [--out docs/bench_mapping]
 """
 
@@ -35,7 +41,7 @@ import numpy as np
 import trimesh
 
 from h3edge.bench.tables import cell, markdown_table
-from h3edge.config import load_profile
+from h3edge.config import apply_overrides, load_profile
 from h3edge.eval.evaluate import MeshRenderer, evaluate
 from h3edge.eval.metrics import depth_error_map
 from h3edge.eval.tsdf import fuse_tsdf
@@ -79,11 +85,12 @@ def render_replica(root: Path, out: Path, stride: int) -> Path:
     return out
 
 
-def _row(name: str, per_frame: list[float], res: dict) -> dict:
+def _row(name: str, per_frame: list[float], res: dict, wall_s: float | None = None) -> dict:
     g, h, t = res.get("geometry", {}), res.get("heldout_views", {}), res.get("train_views", {})
     ref = res.get("vs_reference", {})
     pct = lambda v: None if v is None else 100 * v  # noqa: E731
-    return {"method": name, "frame_ms_median": 1000 * float(np.median(per_frame)),
+    return {"method": name, "frame_ms_median": 1000 * float(np.median(per_frame)) if per_frame else None,
+            "wall_s": float(sum(per_frame)) if wall_s is None else wall_s,
             "front_pct_heldout": pct(h.get("front_share")), "behind_pct_heldout": pct(h.get("behind_share")),
             "depth_median_heldout_cm": h.get("depth_median_cm"),
             "to_tsdf_cm": ref.get("to_reference_cm"), "far_from_tsdf_pct": pct(ref.get("far_from_reference_share")),
@@ -100,6 +107,7 @@ def _ratio(r: dict) -> str:
 
 
 COLUMNS = [("method", lambda r: r["method"], None), ("frame [ms] median", lambda r: r["frame_ms_median"], 0),
+           ("wall [s]", lambda r: r.get("wall_s"), 1),
            ("Acc [cm]", lambda r: r["accuracy_cm"], 2), ("Comp [cm]", lambda r: r["completion_cm"], 2),
            ("Comp ratio", _ratio, None), ("PSNR train", lambda r: r["psnr_train_db"], 2),
            ("PSNR held-out", lambda r: r["psnr_heldout_db"], 2), ("SSIM held-out", lambda r: r["ssim_heldout"], 3),
@@ -118,22 +126,38 @@ def format_rows(title: str, rows: list[dict]) -> str:
 
 
 def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_voxel: float,
-                  picture: Path | None = None) -> dict:
+                  picture: Path | None = None, settings=None, variants: dict | None = None,
+                  live_hz: float | None = None, settle_s: float = 0.0) -> dict:
+    """TSDF and h3edge on ``seq``; ``variants`` {label: MapSettings} and a live replay as extra rows."""
     log.info("%s: TSDF peer (Open3D VoxelBlockGrid, %.0f mm voxels)", name, 1000 * tsdf_voxel)
     tsdf, tsdf_times = fuse_tsdf(seq, tsdf_voxel, frames)
     work.mkdir(parents=True, exist_ok=True)
     tsdf.export(work / f"{name}_tsdf_mesh.ply")
     reference = tsdf if seq.gt_mesh_path is None else None  # no GT mesh: compare with the TSDF mesh
-    log.info("%s: h3edge mapper (%s), %d frames", name, profile.name, len(seq) if frames is None else frames)
-    run = run_offline(seq, profile, work / f"{name}_h3edge", frames=frames, reference=reference)
-    rows = [_row(f"h3edge ({profile.name})", run["mapper"].timings.samples["frame"], run["metrics"]),
-            _row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", tsdf_times,
-                 evaluate(seq, mesh=tsdf, cfg=profile.eval))]
+    settings = settings or profile.map_settings()
+    runs = {f"h3edge ({profile.name})": dict(settings=settings)}
+    for label, st in (variants or {}).items():
+        runs[f"h3edge {label}"] = dict(settings=st)
+    if live_hz:
+        runs[f"h3edge live @ {live_hz:g} Hz" + (f" + {settle_s:g} s" if settle_s else "")] = dict(
+            settings=settings, camera_hz=live_hz, settle_s=settle_s)
+    rows, first, stats = [], None, {}
+    for k, (label, kw) in enumerate(runs.items()):
+        log.info("%s: %s, %d frames", name, label, len(seq) if frames is None else frames)
+        run = run_offline(seq, profile, work / f"{name}_h3edge{'' if k == 0 else f'_{k}'}", frames=frames,
+                          reference=reference, **kw)
+        mapped = run["mapper"].timings.samples.get("frame", [])
+        row = _row(label, mapped, run["metrics"], wall_s=run["mapping_wall_s"])
+        row.update(frames_mapped=run["stats"]["frames_mapped"], iterations=run["replay"]["iterations"])
+        rows.append(row)
+        stats[label] = run["stats"]
+        first = first or run
+    rows.append(_row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", tsdf_times,
+                     evaluate(seq, mesh=tsdf, cfg=profile.eval)))
     if picture is not None:
-        write_comparison(seq, run["mapper"], MeshRenderer(tsdf), picture, profile.eval.depth_error_threshold)
-    comps = run["mapper"].timings.summary()
-    return {"dataset": name, "frames": len(run["mapper"].timings.samples["frame"]), "rows": rows,
-            "h3edge_components": comps, "h3edge_stats": run["stats"]}
+        write_comparison(seq, first["mapper"], MeshRenderer(tsdf), picture, profile.eval.depth_error_threshold)
+    return {"dataset": name, "frames": len(first["mapper"].timings.samples["frame"]), "rows": rows,
+            "h3edge_components": first["mapper"].timings.summary(), "h3edge_stats": stats}
 
 
 def write_comparison(seq, h3, tsdf, path: Path, threshold: float = 0.05, views: int = 4, tile: int = 256) -> None:
@@ -161,11 +185,22 @@ def main(argv=None) -> int:
     ap.add_argument("--tsdf-voxel", type=float, default=0.01)
     ap.add_argument("--work", default="out/bench_mapping", help="cache and run directories")
     ap.add_argument("--out", default="docs/bench_mapping", help="writes OUT.md and OUT.json")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="change the profile's setting for every h3edge row")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL:SECTION.KEY=VALUE[;...]",
+                    help="one more h3edge row with these settings changed")
+    ap.add_argument("--live-hz", type=float, help="one more h3edge row: a live replay at this camera rate")
+    ap.add_argument("--settle-s", type=float, default=0.0, help="the live replay's training after the last frame")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from h3edge.sim.make import PRESETS, ensure_scene
 
     profile = load_profile(args.profile)
+    settings = apply_overrides(profile.map_settings(), args.set)
+    variants = {}
+    for v in args.variant:
+        label, _, sets = v.partition(":")
+        variants[label] = apply_overrides(settings, [x for x in sets.split(";") if x])
     work = Path(args.work)
     results, tables = [], []
     for ds in args.datasets:
@@ -186,7 +221,8 @@ def main(argv=None) -> int:
             title = f"Replica office0 GT mesh along every {args.replica_stride}th real pose (1200x680)"
         out = Path(args.out)
         r = bench_dataset(ds, seq, profile, work, args.frames, args.tsdf_voxel,
-                          picture=out.parent / f"{out.name}_{ds}.png")
+                          picture=out.parent / f"{out.name}_{ds}.png", settings=settings, variants=variants,
+                          live_hz=args.live_hz, settle_s=args.settle_s)
         r["title"] = title
         results.append(r)
         tables.append(format_rows(title, r["rows"]))

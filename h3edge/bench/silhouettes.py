@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from h3edge.config import load_profile
+from h3edge.config import apply_overrides, load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
@@ -219,20 +219,6 @@ def mapped(seq, settings, n: int, work: Path) -> Mapper:
     work.mkdir(parents=True, exist_ok=True)
     write_checkpoint(ckpt, {"state": meta}, arrays)
     return m
-
-
-def apply_overrides(settings, overrides: list[str]):
-    """``section.key=value`` overrides on :class:`MapSettings` (values parsed as JSON, else strings)."""
-    for item in overrides:
-        key, _, raw = item.partition("=")
-        section, _, name = key.partition(".")
-        try:
-            value = json.loads(raw)
-        except ValueError:
-            value = raw
-        sub = getattr(settings, section)
-        settings = dataclasses.replace(settings, **{section: dataclasses.replace(sub, **{name: value})})
-    return settings
 
 
 if __name__ == "__main__":

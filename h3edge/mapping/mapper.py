@@ -58,6 +58,10 @@ class MapperConfig:
     min_valid_fraction: float = 0.01  # frames with less valid depth are dropped
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
+    # mesh only cubes whose 8 lattice points each have at least this share of their trilinear
+    # weight on vertices whose prior an observation set (0: every allocated voxel, the authors');
+    # the field's phantom surfaces sit where priors are unset (docs/silhouettes.md)
+    mesh_min_support: float = 0.25
     # train on keyframes whenever no frame waits (service; offline replay at a camera rate)
     train_between_frames: bool = True
     seed: int = 0
@@ -324,7 +328,8 @@ class Mapper:
         if self.field is None:
             raise RuntimeError("nothing mapped yet")
         return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.train_cfg.beta,
-                       self.settings.render, self.cfg.mesh_resolution, self.frames_mapped)
+                       self.settings.render, self.cfg.mesh_resolution, self.frames_mapped,
+                       self.cfg.mesh_min_support)
 
     def renderer(self) -> MapRenderer:
         return self.view().renderer()

@@ -18,6 +18,7 @@ from h3edge.mapping.voxels import CORNERS, pack, unpack
 
 SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) metres -> SDF (N,), any positive-outside unit
 ColorFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) -> RGB (N, 3) in [0, 1]
+SupportFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) -> evidence (N,) in [0, 1]
 
 
 def _region(voxel_keys: np.ndarray, voxel_size: float, aabb: np.ndarray | None) -> np.ndarray:
@@ -42,8 +43,13 @@ def working_bytes(voxel_keys: np.ndarray, voxel_size: float, resolution: int, aa
 
 def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resolution: int = 8,
                  color_fn: ColorFn | None = None, batch: int = 262_144,
-                 aabb: np.ndarray | None = None) -> trimesh.Trimesh:
-    """Zero level set of ``sdf_fn`` inside the voxels ``voxel_keys`` (optionally cut to ``aabb``)."""
+                 aabb: np.ndarray | None = None, support_fn: SupportFn | None = None,
+                 min_support: float = 0.0) -> trimesh.Trimesh:
+    """Zero level set of ``sdf_fn`` inside the voxels ``voxel_keys`` (optionally cut to ``aabb``).
+    ``support_fn`` / ``min_support``: a cube is meshed only where all 8 of its lattice points have
+    a support of at least ``min_support`` (evidence from observations, see
+    :meth:`~h3edge.mapping.render.PriorLookup.support`), as TSDF fusion meshes only cubes whose
+    corners all carry weight."""
     ijk = _region(voxel_keys, voxel_size, aabb)
     if len(ijk) == 0:
         return trimesh.Trimesh()
@@ -64,10 +70,23 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
     vol = np.ones(shape, np.float32)  # unevaluated = outside
     pts = np.empty((min(batch, len(flat)), 3), np.float64)
     origin_r = (origin * r).astype(np.int64)
+    unsupported = np.zeros(shape, bool) if support_fn is not None and min_support > 0 else None
     for s in range(0, len(flat), batch):
         f = flat[s:s + batch]
         k.to_points(f, np.array(shape, np.int64), origin_r, cell, pts[:len(f)])
         vol.reshape(-1)[f] = sdf_fn(pts[:len(f)])
+        if unsupported is not None:
+            unsupported.reshape(-1)[f] = support_fn(pts[:len(f)]) < min_support
+    if unsupported is not None:  # the cube with upper corner p has its 8 lattice points in p - {0, 1}^3
+        bad = unsupported.copy()
+        for axis in range(3):
+            sl = [slice(None)] * 3
+            sl[axis] = slice(1, None)
+            prev = [slice(None)] * 3
+            prev[axis] = slice(None, -1)
+            bad[tuple(sl)] |= bad[tuple(prev)]
+        mask &= ~bad
+        del bad, unsupported
     if not (vol[mask].min() < 0 < vol[mask].max()):
         return trimesh.Trimesh()
     verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(cell,) * 3, mask=mask, allow_degenerate=False)

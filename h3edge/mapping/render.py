@@ -90,15 +90,25 @@ class PriorLookup:
         self.vv = voxels.voxel_vertices
         self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
 
-    def __call__(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.observed = voxels.prior_set.astype(np.float64)
+
+    def __call__(self, pts: np.ndarray, values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(trilinear prior, voxel id) at ``pts``; ``values``: interpolate these per-vertex values
+        instead of the priors."""
         sdf = np.empty(len(pts), np.float64)
         vox = np.empty(len(pts), np.int64)
         if len(self.vv):
             _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.grid, self.g0, self.vs, self.vv,
-                               self.priors, self.eps, sdf, vox)
+                               self.priors if values is None else values, self.eps, sdf, vox)
         else:
             sdf[:], vox[:] = 0, -1
         return sdf, vox
+
+    def support(self, pts: np.ndarray) -> np.ndarray:
+        """Share of the trilinear weight at ``pts`` that falls on vertices whose prior was set from
+        a depth observation (0 outside the allocated voxels): where the map has evidence."""
+        share, vox = self(pts, self.observed)
+        return np.where(vox >= 0, share, 0.0)
 
 
 @torch.no_grad()

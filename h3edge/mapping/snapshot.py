@@ -53,10 +53,10 @@ def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
 
 class MapView:
     def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, beta: float, render_cfg: RenderConfig,
-                 mesh_resolution: int, frames_mapped: int = 0):
+                 mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0):
         self.field, self.voxels = field, voxels
         self.voxel_size, self.beta, self.render_cfg = voxel_size, beta, render_cfg
-        self.mesh_resolution = mesh_resolution
+        self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
 
     def frozen(self, decoders: DecoderRuntime | None = None) -> "MapView":
@@ -67,7 +67,7 @@ class MapView:
             field.sdf_mlp = decoders.mlp(field.sdf_mlp)
             field.color_mlp = decoders.mlp(field.color_mlp)
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.beta,
-                       self.render_cfg, self.mesh_resolution, self.frames_mapped)
+                       self.render_cfg, self.mesh_resolution, self.frames_mapped, self.mesh_min_support)
 
     @property
     def device(self) -> torch.device:
@@ -110,11 +110,13 @@ class MapView:
              prior_margin: float | None = 1.0) -> trimesh.Trimesh:
         """Marching-cubes mesh of the map, vertex colours from the colour field. The residual MLP is
         evaluated at lattice points whose prior is within ``prior_margin`` truncation units of the
-        surface (None: everywhere), where the zero crossing can be."""
+        surface (None: everywhere), where the zero crossing can be. Cubes whose lattice points lack
+        observed priors (support under ``mesh_min_support``) are left out."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
         lookup = PriorLookup(self.voxels)
         margin = np.inf if prior_margin is None else prior_margin
         return extract_mesh(self.voxels.voxel_keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup),
                             resolution or self.mesh_resolution,
-                            (lambda x: self.color_np(x, lookup)) if color else None, aabb=aabb)
+                            (lambda x: self.color_np(x, lookup)) if color else None, aabb=aabb,
+                            support_fn=lookup.support, min_support=self.mesh_min_support)

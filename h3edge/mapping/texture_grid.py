@@ -75,6 +75,8 @@ class QuasiHeteroTexture(nn.Module):
         centres = ((voxel_ijk + 0.5) * voxel_size - lo) / size
         V = len(voxel_ijk)
         weak = (classes[:V] == WEAK) if self.cfg.warp_weak else np.zeros(V, bool)
+        if self.cfg.warp_weak and self.cfg.scaling_everywhere:
+            weak = np.ones(V, bool)
         nd = np.where(classes[:V] == RICH, n_dirs[:V], 0) if self.cfg.warp_rich else np.zeros(V, np.int64)
         M = self.cfg.max_directions
         A = np.tile(np.eye(3), (V, M, 1, 1))

@@ -35,6 +35,9 @@ class TextureConfig:
     quasi_heterogeneous: bool = True  # False: H2-Mapping's uniform texture grid
     warp_rich: bool = True  # "w.R": affine warps for rich texture with low-frequency directions
     warp_weak: bool = True  # "w.W": the scaling warp for weak texture
+    # the scaling-warped (low-frequency) features for every voxel, not only weak ones: no feature
+    # block switching on and off between neighbouring voxels of different class (a departure)
+    scaling_everywhere: bool = False
     update_interval: int = 10  # frames between texture pattern determinations (authors)
     max_directions: int = 2  # M
     tr_near: float = 0.95  # |cos| above which two line directions are the same direction

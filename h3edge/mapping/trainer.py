@@ -22,7 +22,7 @@ import torch
 
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
-from h3edge.mapping.rendering import composite
+from h3edge.mapping.rendering import colour_samples, composite
 from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
 
@@ -38,6 +38,9 @@ class TrainConfig:
     free_in_voxels: bool = False
     free_candidates: int = 64  # stratified candidates per ray the in-voxel free samples are drawn from
     near: float = 0.05
+    # colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel
+    # band sample, the paper's); the skipped samples carry < floor of a ray's colour each
+    color_weight_floor: float = 1e-3
     surface_aware: bool = True
     weights: LossWeights = field(default_factory=LossWeights)
 
@@ -102,10 +105,11 @@ def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch
     sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
     band_pts = pts[:, b0:].reshape(-1, 3)
     band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
-    band_in = torch.nonzero(band_vox >= 0).squeeze(1)  # colour only where it can weigh
+    need = colour_samples(sdf[:, b0:], cfg.beta, inside[:, b0:], cfg.color_weight_floor)
+    band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
     col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
         0, band_in, field_.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
-    out = composite(sdf[:, b0:], t[:, b0:], col, cfg.beta, inside[:, b0:])
+    out = composite(sdf[:, b0:], t[:, b0:], col, cfg.beta, inside[:, b0:], color_mask=need)
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
     order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
     fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth, inside.gather(1, order),

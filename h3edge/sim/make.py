@@ -37,6 +37,7 @@ class SimSpec:
     heldout_every: int = 10
     depth_noise: bool = False
     missing_depth: bool = False
+    layout: str = "room"  # "room" (the default scene) or "studio" (the second scene)
 
     @property
     def intrinsics(self) -> Intrinsics:
@@ -47,6 +48,8 @@ class SimSpec:
 PRESETS = {
     "default": SimSpec(),
     "tiny": SimSpec(frames=40, width=160, height=120, heldout_every=5),
+    # the second scene: other textures, layout and trajectory; 300 frames mapped, 30 held out
+    "studio": SimSpec(seed=1, frames=300, layout="studio"),
 }
 
 
@@ -74,10 +77,10 @@ def make_scene(out: str | Path, spec: SimSpec) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    room = build_room(spec.seed)
+    room = build_room(spec.seed, layout=spec.layout)
     t_build = time.perf_counter() - t0
     renderer = RoomRenderer(room)
-    poses = camera_path(spec.frames)
+    poses = camera_path(spec.frames, spec.layout)
     stamps = np.arange(spec.frames) / spec.fps
     sensor = SensorModel(depth_noise=spec.depth_noise, missing_depth=spec.missing_depth)
     times = _write_split(out, renderer, spec, poses, sensor, stamps)
@@ -111,7 +114,8 @@ def ensure_scene(out: str | Path, spec: SimSpec) -> Path:
     meta = out / "meta.json"
     if meta.is_file():
         try:
-            if json.loads(meta.read_text()).get("spec") == asdict(spec):
+            made = {"layout": "room", **json.loads(meta.read_text()).get("spec", {})}  # made before layouts
+            if made == asdict(spec):
                 log.info("using cached scene %s", out)
                 return out
         except json.JSONDecodeError:

@@ -1,10 +1,12 @@
 """The procedural indoor room: textured planar surfaces -> one mesh, a texture atlas and a GT mesh.
 
-A room of 6 x 5 x 2.8 m (x east, y north, z up; floor at z = 0) with weak-textured walls and
-ceiling, striped surfaces (floor planks, window blinds, a tiled splash-back, book spines, a
-striped bin), photographs and tinted stone textures (posters, a brick feature wall, a rug,
-cardboard boxes) and furniture that occludes (table, bookshelf, cabinet, boxes, bin).
-``build_room(seed)`` is a pure function of its seed.
+Two layouts. ``room`` (the default scene): 6 x 5 x 2.8 m (x east, y north, z up; floor at z = 0)
+with weak-textured walls and ceiling, striped surfaces (floor planks, window blinds, a tiled
+splash-back, book spines, a striped bin), photographs and tinted stone textures (posters, a brick
+feature wall, a rug, cardboard boxes) and furniture that occludes (table, bookshelf, cabinet,
+boxes, bin). ``studio`` (a second scene that differs in textures, layout and, with its own
+trajectory, camera path): 7 x 4.5 x 3 m, see :func:`_studio_surfaces`.
+``build_room(seed, layout=...)`` is a pure function of its arguments.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from h3edge.geometry.raycast import TextureAtlas
 from h3edge.sim import textures as tx
 
 ROOM_SIZE = np.array([6.0, 5.0, 2.8])
+STUDIO_SIZE = np.array([7.0, 4.5, 3.0])
 MIP_LEVELS = 4
 _ALIGN = 1 << (MIP_LEVELS - 1)  # atlas cells start on multiples of this, so mips stay aligned
 _LIGHT = np.array([0.35, 0.55, 0.76]) / np.linalg.norm([0.35, 0.55, 0.76])
@@ -122,26 +125,61 @@ def _cylinder_quads(center, radius, height, segments=24) -> list[Quad]:
     return quads
 
 
-def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
-    W, D, H = ROOM_SIZE
-    S: list[Surface] = []
+class _Builder:
+    """Collects surfaces (texture sized from the quads and texel) and the solid obstacles."""
 
-    def add(name, quads, texel, kind, make):
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.surfaces: list[Surface] = []
+        self.obstacles: list[Box] = []
+
+    def add(self, name, quads, texel, kind, make) -> None:
         quads = quads if isinstance(quads, list) else [quads]
         # texture covers the union of the quads' uv ranges: size it from the first quad and the uv span
         q0 = quads[0]
         span_u = max(q.uv1[0] for q in quads) - min(q.uv0[0] for q in quads)
         h, w0 = _tex_size(q0, texel)
         w = max(8, int(np.ceil(w0 * span_u / max(q0.uv1[0] - q0.uv0[0], 1e-9))))
-        S.append(_surface(name, make(h, w), texel, quads, kind))
+        self.surfaces.append(_surface(name, make(h, w), texel, quads, kind))
 
-    # room shell, visible sides facing inwards
-    add("floor", _quad([0, D, 0], [W, 0, 0], [0, -D, 0]), 0.004, "stripes", lambda h, w: tx.planks(rng, h, w, 40))
-    add("ceiling", _quad([0, 0, H], [W, 0, 0], [0, D, 0]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (236, 234, 228)))
-    add("wall_south", _quad([0, 0, H], [W, 0, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (196, 204, 212)))
-    add("wall_east", _quad([W, 0, H], [0, D, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (214, 200, 176)))
-    add("wall_north", _quad([W, D, H], [-W, 0, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (222, 218, 206)))
-    add("wall_west", _quad([0, D, H], [0, -D, 0], [0, 0, -H]), 0.01, "weak", lambda h, w: tx.weak(rng, h, w, (190, 208, 186)))
+    def box(self, name, lo, hi, texel, kind, make, faces=None) -> None:
+        """An axis-aligned solid box; ``kind`` and ``make`` are functions of the face name."""
+        self.obstacles.append(Box(np.asarray(lo, float), np.asarray(hi, float)))
+        for fname, q in _box_quads(lo, hi).items():
+            if faces is None or fname in faces:
+                self.add(f"{name}{fname}", q, texel, kind(fname) if callable(kind) else kind, make(fname))
+
+    def cylinder(self, name, center, radius, height, texel, kind, make) -> None:
+        self.obstacles.append(Box(np.array([center[0] - radius, center[1] - radius, 0.0]),
+                                  np.array([center[0] + radius, center[1] + radius, height])))
+        self.add(name, _cylinder_quads(center, radius, height), texel, kind, make)
+
+    def shell(self, size, textures: dict) -> None:
+        """Floor, ceiling and four walls of a size[0] x size[1] x size[2] room, visible sides inwards;
+        ``textures``: {name: (texel, kind, make)}."""
+        W, D, H = size
+        quads = {"floor": _quad([0, D, 0], [W, 0, 0], [0, -D, 0]), "ceiling": _quad([0, 0, H], [W, 0, 0], [0, D, 0]),
+                 "wall_south": _quad([0, 0, H], [W, 0, 0], [0, 0, -H]),
+                 "wall_east": _quad([W, 0, H], [0, D, 0], [0, 0, -H]),
+                 "wall_north": _quad([W, D, H], [-W, 0, 0], [0, 0, -H]),
+                 "wall_west": _quad([0, D, H], [0, -D, 0], [0, 0, -H])}
+        for name, q in quads.items():
+            texel, kind, make = textures[name]
+            self.add(name, q, texel, kind, make)
+
+
+def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
+    """The default room (``ROOM_SIZE``)."""
+    b = _Builder(rng)
+    add, box = b.add, b.box
+    W, D, H = ROOM_SIZE
+    b.shell(ROOM_SIZE, {
+        "floor": (0.004, "stripes", lambda h, w: tx.planks(rng, h, w, 40)),
+        "ceiling": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (236, 234, 228))),
+        "wall_south": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (196, 204, 212))),
+        "wall_east": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (214, 200, 176))),
+        "wall_north": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (222, 218, 206))),
+        "wall_west": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (190, 208, 186)))})
     # wall decorations, a little proud of the wall
     add("blinds", _quad([1.5, 0.03, 2.3], [2.0, 0, 0], [0, 0, -1.4]), 0.003, "stripes", lambda h, w: tx.blinds(rng, h, w, 14))
     add("tiles", _quad([5.8, D - 0.01, 1.6], [-2.2, 0, 0], [0, 0, -0.7]), 0.003, "stripes", lambda h, w: tx.tiles(rng, h, w, 50, 3))
@@ -154,14 +192,6 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
     add("poster_hubble", _quad([0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7]), 0.003, "rich", lambda h, w: tx.photo("hubble_deep_field", h, w))
     add("rug", _quad([2.0, 3.7, 0.008], [2.6, 0, 0], [0, -2.0, 0]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "gravel", h, w, (0.75, 0.55, 0.5), 300))
-
-    obstacles: list[Box] = []
-
-    def box(name, lo, hi, texel, kind, make, faces=None):
-        obstacles.append(Box(np.asarray(lo, float), np.asarray(hi, float)))
-        for fname, q in _box_quads(lo, hi).items():
-            if faces is None or fname in faces:
-                add(f"{name}{fname}", q, texel, kind(fname) if callable(kind) else kind, make(fname))
 
     wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 24))  # noqa: E731
     # table: top and four legs
@@ -177,10 +207,56 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
     box("box_top", [0.1, 3.8, 0.9], [0.45, 4.3, 1.2], 0.004, "rich", cardboard)
     box("box_floor", [1.0, 1.0, 0.0], [1.5, 1.4, 0.4], 0.004, "rich", cardboard)
     # striped cylindrical bin near the north-east corner
-    bin_quads = _cylinder_quads((4.8, 4.3), 0.18, 0.45)
-    obstacles.append(Box(np.array([4.62, 4.12, 0.0]), np.array([4.98, 4.48, 0.45])))
-    add("bin", bin_quads, 0.003, "stripes", lambda h, w: np.transpose(tx.blinds(rng, w, h, 20), (1, 0, 2)).copy())
-    return S, obstacles
+    b.cylinder("bin", (4.8, 4.3), 0.18, 0.45, 0.003, "stripes",
+               lambda h, w: np.transpose(tx.blinds(rng, w, h, 20), (1, 0, 2)).copy())
+    return b.surfaces, b.obstacles
+
+
+def _studio_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
+    """The second scene (``STUDIO_SIZE``), built to differ from the default room in every texture
+    and in layout: a terracotta tiled floor, a full grey brick wall, vertical blinds, plank
+    cladding, a wall of photographic tiles, a notice board of printed text, a sofa in woven fabric,
+    a gravel planter, a concrete column, a desk and crates, plain white walls and ceiling."""
+    b = _Builder(rng)
+    add, box = b.add, b.box
+    W, D, H = STUDIO_SIZE
+    b.shell(STUDIO_SIZE, {
+        "floor": (0.005, "stripes", lambda h, w: tx.tiles(rng, h, w, 90, 4, base=(176, 98, 70))),
+        "ceiling": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (242, 242, 240))),
+        "wall_south": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (238, 236, 230))),
+        "wall_east": (0.004, "rich", lambda h, w: tx.tinted(rng, "brick", h, w, (0.78, 0.78, 0.82), 220)),
+        "wall_north": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (226, 230, 236))),
+        "wall_west": (0.004, "stripes", lambda h, w: np.transpose(tx.planks(rng, w, h, 30), (1, 0, 2)).copy())})
+    # north wall: vertical blinds over a window, a wall of photographic tiles, a notice board
+    add("blinds", _quad([0.6, D - 0.02, 2.5], [2.2, 0, 0], [0, 0, -1.9]), 0.003, "stripes",
+        lambda h, w: np.transpose(tx.blinds(rng, w, h, 16), (1, 0, 2)).copy())
+    add("photo_tiles", _quad([6.4, D - 0.01, 2.2], [-2.4, 0, 0], [0, 0, -1.6]), 0.003, "rich",
+        lambda h, w: tx.photo_tiles(rng, h, w, ["immunohistochemistry", "retina", "colorwheel", "coffee", "chelsea"], 6))
+    add("notice_board", _quad([0.02, 1.6, 1.9], [0, -1.0, 0], [0, 0, -0.8]), 0.002, "rich",
+        lambda h, w: tx.tinted(rng, "text", h, w, (1.0, 0.97, 0.9), 240))
+    add("poster_rocket", _quad([W - 0.01, 0.8, 2.1], [0, 0.8, 0], [0, 0, -1.1]), 0.003, "rich",
+        lambda h, w: tx.photo("rocket", h, w))
+    add("carpet", _quad([3.0, 2.6, 0.008], [2.2, 0, 0], [0, -1.6, 0]), 0.004, "rich",
+        lambda h, w: tx.tinted(rng, "grass", h, w, (0.45, 0.55, 0.8), 260))
+    fabric = lambda f: (lambda h, w: tx.tinted(rng, "grass", h, w, (0.8, 0.5, 0.4), 160))  # noqa: E731
+    box("sofa_seat", [3.2, 0.2, 0.0], [5.4, 1.0, 0.45], 0.004, "rich", fabric)
+    box("sofa_back", [3.2, 0.05, 0.0], [5.4, 0.25, 0.9], 0.004, "rich", fabric, faces=["+y", "+z", "-x", "+x"])
+    wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 18))  # noqa: E731
+    box("desk_top", [0.4, 2.6, 0.74], [1.9, 3.4, 0.78], 0.003, "stripes", wood)
+    for i, (x, y) in enumerate([(0.45, 2.65), (1.8, 2.65), (0.45, 3.3), (1.8, 3.3)]):
+        box(f"desk_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.74], 0.004, "stripes", wood)
+    crate = lambda f: (lambda h, w: tx.planks(rng, h, w, 22))  # noqa: E731
+    box("crate_a", [6.0, 1.6, 0.0], [6.6, 2.2, 0.5], 0.004, "stripes", crate)
+    box("crate_b", [6.1, 1.7, 0.5], [6.5, 2.1, 0.85], 0.004, "stripes", crate)
+    gravel = lambda f: (lambda h, w: tx.tinted(rng, "gravel", h, w, (0.7, 0.75, 0.6), 180))  # noqa: E731
+    box("planter", [2.4, 3.7, 0.0], [3.6, 4.2, 0.35], 0.004, "rich", gravel)
+    b.cylinder("column", (4.6, 2.9), 0.22, H, 0.004, "rich",
+               lambda h, w: tx.tinted(rng, "coins", h, w, (0.9, 0.88, 0.84), 200))
+    box("cabinet", [6.4, 3.0, 0.0], [6.95, 4.0, 1.1], 0.008, "weak",
+        lambda f: (lambda h, w: tx.weak(rng, h, w, (60, 64, 72), 2.0)))
+    return b.surfaces, b.obstacles
+
+
 
 
 def _shade(normal: np.ndarray) -> float:
@@ -188,10 +264,17 @@ def _shade(normal: np.ndarray) -> float:
     return float(0.78 + 0.22 * np.dot(normal, _LIGHT))
 
 
-def build_room(seed: int, gt_spacing: float = 0.05) -> Room:
-    """Build the room for ``seed``: mesh, mip-mapped atlas and the vertex-coloured GT mesh."""
+LAYOUTS = {"room": (ROOM_SIZE, _surfaces), "studio": (STUDIO_SIZE, _studio_surfaces)}
+
+
+def build_room(seed: int, gt_spacing: float = 0.05, layout: str = "room") -> Room:
+    """Build the ``layout`` ("room" or "studio") for ``seed``: mesh, mip-mapped atlas and the
+    vertex-coloured GT mesh."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; choose from {sorted(LAYOUTS)}")
+    size, builder = LAYOUTS[layout]
     rng = np.random.default_rng(seed)
-    surfaces, obstacles = _surfaces(rng)
+    surfaces, obstacles = builder(rng)
 
     # shade each surface once (all quads of a surface share an orientation class except the bin)
     for s in surfaces:
@@ -241,7 +324,8 @@ def build_room(seed: int, gt_spacing: float = 0.05) -> Room:
                 face_surf.append(si)
     atlas = TextureAtlas(levels, np.asarray(face_uv, np.float32), np.asarray(face_texel, np.float32))
     room = Room(np.asarray(verts, np.float32), np.asarray(faces, np.int32), atlas, np.asarray(face_surf, np.int32),
-                [s.name for s in surfaces], [s.kind for s in surfaces], obstacles)
+                [s.name for s in surfaces], [s.kind for s in surfaces], obstacles,
+                np.stack([np.zeros(3), np.asarray(size, float)]))
     room.gt_mesh = _gt_mesh(surfaces, gt_spacing)
     return room
 

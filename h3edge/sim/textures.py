@@ -63,9 +63,10 @@ def blinds(rng: np.random.Generator, h: int, w: int, slat_px: int = 12) -> np.nd
     return _to_u8(img)
 
 
-def tiles(rng: np.random.Generator, h: int, w: int, tile_px: int = 40, grout_px: int = 3) -> np.ndarray:
+def tiles(rng: np.random.Generator, h: int, w: int, tile_px: int = 40, grout_px: int = 3,
+          base: tuple[int, int, int] = (200, 215, 225)) -> np.ndarray:
     """Glazed square tiles with grout lines (two low-frequency directions)."""
-    base = np.array([200, 215, 225], np.float32)
+    base = np.asarray(base, np.float32)
     img = np.empty((h, w, 3), np.float32)
     for y0 in range(0, h, tile_px):
         for x0 in range(0, w, tile_px):
@@ -90,6 +91,22 @@ def book_spines(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         img[:, x:x + 1] *= 0.4  # gap between books
         x += bw
     return _to_u8(img + 2.0 * _smooth_noise(rng, h, w, 6.0)[..., None])
+
+
+def photo_tiles(rng: np.random.Generator, h: int, w: int, names: list[str], per_row: int,
+                grout_px: int = 4) -> np.ndarray:
+    """Square tiles printed with random crops of photographs (``per_row`` across), grout between."""
+    tile = max(8, w // per_row)
+    img = np.full((h, w, 3), 80, np.uint8)
+    sources = [photo(n, 2 * tile, 2 * tile) for n in names]
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            src = sources[int(rng.integers(len(sources)))]
+            oy, ox = rng.integers(0, tile, size=2)
+            th, tw = min(tile, h - y0) - grout_px, min(tile, w - x0) - grout_px
+            if th > 0 and tw > 0:
+                img[y0:y0 + th, x0:x0 + tw] = src[oy:oy + th, ox:ox + tw]
+    return img
 
 
 def photo(name: str, h: int, w: int) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from h3edge.geometry.camera import look_at
 
 # (eye, target) in room coordinates (x east, y north, z up); see h3edge.sim.scene for the layout.
-KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [
+KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [  # the "room" layout
     ((1.0, 1.0, 1.5), (5.8, 1.8, 1.0)),  # far view to the bookshelf
     ((3.0, 1.3, 1.4), (5.8, 1.8, 1.1)),
     ((4.5, 1.6, 1.3), (5.95, 1.8, 1.1)),  # close-up of the books
@@ -32,6 +32,31 @@ KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] =
 ]
 
 
+# the "studio" layout (7 x 4.5 x 3 m): a different loop, lower and higher eyes, longer sight lines
+STUDIO_KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [
+    ((1.0, 1.0, 1.6), (6.9, 2.5, 1.4)),  # far view to the brick wall
+    ((3.0, 1.6, 1.2), (6.9, 1.2, 1.6)),  # rocket poster and crates
+    ((5.2, 1.8, 1.1), (6.3, 1.9, 0.4)),  # crates close-up
+    ((5.6, 2.4, 1.7), (6.9, 3.4, 1.4)),  # brick close-up, cabinet
+    ((5.0, 3.5, 1.5), (5.2, 4.5, 1.4)),  # photographic tiles close-up
+    ((4.0, 3.3, 1.9), (2.0, 4.5, 1.5)),  # blinds from the side
+    ((3.2, 3.0, 1.3), (3.0, 4.0, 0.2)),  # planter from above
+    ((2.4, 2.0, 1.0), (1.2, 3.0, 0.6)),  # desk, low
+    ((1.6, 1.5, 1.5), (0.0, 1.1, 1.5)),  # notice board close-up
+    ((1.2, 0.9, 2.2), (0.0, 3.5, 1.0)),  # plank cladding, high
+    ((2.0, 1.2, 1.4), (4.4, 0.4, 0.4)),  # sofa
+    ((2.6, 2.6, 1.7), (5.6, 0.0, 2.0)),  # south wall above the sofa
+    ((2.4, 3.2, 1.5), (1.0, 0.0, 2.4)),  # south-west corner
+    ((3.0, 2.2, 1.5), (1.5, 1.0, 3.0)),  # ceiling, west half
+    ((3.0, 1.8, 1.0), (4.6, 2.9, 1.2)),  # column close-up
+    ((3.6, 1.9, 2.3), (5.5, 2.0, 3.0)),  # ceiling, east half
+    ((2.8, 2.3, 1.8), (4.2, 1.8, 0.0)),  # carpet and floor tiles
+    ((1.4, 3.9, 1.6), (6.5, 1.0, 1.0)),  # far view across the studio
+    ((0.9, 2.0, 1.4), (6.9, 3.0, 1.2)),
+]
+KEY_VIEW_SETS = {"room": KEY_VIEWS, "studio": STUDIO_KEY_VIEWS}
+
+
 def _catmull_rom(points: np.ndarray, samples_per_segment: int) -> np.ndarray:
     """Closed uniform Catmull-Rom spline through ``points`` (N, D), densely sampled."""
     n = len(points)
@@ -44,12 +69,14 @@ def _catmull_rom(points: np.ndarray, samples_per_segment: int) -> np.ndarray:
     return np.concatenate(out)
 
 
-def camera_path(n_frames: int) -> np.ndarray:
-    """``n_frames`` camera-to-world poses (N, 4, 4) evenly spaced along the closed key-view loop."""
+def camera_path(n_frames: int, layout: str = "room") -> np.ndarray:
+    """``n_frames`` camera-to-world poses (N, 4, 4) evenly spaced along the closed key-view loop of
+    ``layout``."""
     if n_frames < 2:
         raise ValueError("a trajectory needs at least 2 frames")
-    eyes = np.array([k[0] for k in KEY_VIEWS], float)
-    targets = np.array([k[1] for k in KEY_VIEWS], float)
+    views = KEY_VIEW_SETS[layout]
+    eyes = np.array([k[0] for k in views], float)
+    targets = np.array([k[1] for k in views], float)
     dense = _catmull_rom(np.concatenate([eyes, targets], axis=1), 400)
     e, tg = dense[:, :3], dense[:, 3:]
     # arc length over eye motion plus (scaled) gaze motion, so pure turns also advance the camera
