@@ -260,3 +260,23 @@ def test_warp_switches(flag):
     enc.set_warps(ijk, 0.1, np.array([WEAK, RICH], np.int8), dirs, np.array([0, 1]))
     assert enc.weak.tolist() == [flag == "warp_rich", False]
     assert enc.n_dirs.tolist() == [0, 0 if flag == "warp_rich" else 1]
+
+
+def test_scaling_warp_everywhere_gives_every_voxel_the_low_frequency_block():
+    """``scaling_everywhere``: the scaling-warped features for every classified voxel (no block
+    switching between neighbours of different class); directional warps stay per class; with the
+    scaling warp off it has no effect."""
+    ijk = np.array([[1, 1, 1], [2, 1, 1], [3, 1, 1]])
+    cls = np.array([PLAIN, WEAK, RICH], np.int8)
+    dirs = np.zeros((3, 2, 3))
+    dirs[2, 0] = unit([1, 0, 0])
+    enc, _ = _encoder(TextureConfig(scaling_everywhere=True))
+    enc.set_warps(ijk, 0.1, cls, dirs, np.array([0, 0, 1]))
+    assert enc.weak.tolist() == [True, True, True] and enc.n_dirs.tolist() == [0, 0, 1]
+    enc.grid.table.data.uniform_(-1, 1)
+    feats = enc(torch.tensor((ijk + 0.3) * 0.1, dtype=torch.float32), torch.arange(3))
+    nz = (feats.abs().reshape(3, 4, enc.block).sum(-1) > 0).numpy()
+    assert nz.tolist() == [[True, True, False, False], [True, True, False, False], [True, True, True, False]]
+    off, _ = _encoder(TextureConfig(scaling_everywhere=True, warp_weak=False))
+    off.set_warps(ijk, 0.1, cls, dirs, np.array([0, 0, 1]))
+    assert off.weak.tolist() == [False, False, False]

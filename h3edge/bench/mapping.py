@@ -2,6 +2,8 @@
 
 Datasets:
 - ``sim``: the default simulated scene (400 frames 640x480, held-out views between them);
+- ``studio``: the second simulated scene (other textures, layout and trajectory; 300 frames, 30
+  held out);
 - ``real``: the real Kinect v1 sequence ``../shared/data/7scenes_redkitchen_dev`` (7-Scenes
   redkitchen, 270 frames mapped, 30 held out; no GT mesh: both meshes are compared with the TSDF
   mesh instead, both directions);
@@ -178,7 +180,8 @@ def write_comparison(seq, h3, tsdf, path: Path, threshold: float = 0.05, views: 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", nargs="+", default=["sim", "replica", "real"], choices=["sim", "replica", "real"])
+    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "replica", "real"],
+                    choices=["sim", "studio", "replica", "real"])
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
     ap.add_argument("--replica-stride", type=int, default=5)
@@ -207,6 +210,9 @@ def main(argv=None) -> int:
         if ds == "sim":
             seq = ReplicaSequence(ensure_scene(work / "scene_default", PRESETS["default"]))
             title = "default simulated scene (640x480)"
+        elif ds == "studio":
+            seq = ReplicaSequence(ensure_scene(work / "scene_studio", PRESETS["studio"]))
+            title = "second simulated scene, studio (640x480, 300 frames, 30 held out)"
         elif ds == "real":
             if not REAL.is_dir():
                 log.warning("real skipped: %s not present", REAL)
