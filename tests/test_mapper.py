@@ -149,3 +149,21 @@ def test_prior_adam_keeps_state_across_growth():
     opt.step(vm)
     assert len(opt.m) == len(vm.priors)
     assert torch.allclose(opt.m[1:n], m_before[1:n])  # untouched rows keep their moments
+
+
+def test_a_frame_that_allocates_nothing_is_dropped_not_crashed():
+    """A first frame whose depth leaves every voxel under min_points used to reach training on an
+    empty map (IndexError, counted as internal_error by the service); it is a counted drop, and
+    the next good frame maps."""
+    from h3edge.io.sequence import Frame
+
+    intr = Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)
+    rng = np.random.default_rng(0)
+    color = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    sparse = np.zeros((24, 32), np.float32)
+    sparse[::6, ::6] = rng.uniform(0.5, 4.0, (4, 6))  # 24 scattered points: no voxel gets 3
+    m = Mapper(LEAN)
+    r = m.process(Frame(0, 0.0, color, sparse, np.eye(4), intr))
+    assert not r.mapped and m.dropped == {"no_voxels": 1} and m.train_between_frames() is None
+    r = m.process(Frame(1, 0.1, color, np.full((24, 32), 2.0, np.float32), np.eye(4), intr))
+    assert r.mapped and len(m.voxels) > 0

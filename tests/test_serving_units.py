@@ -256,3 +256,46 @@ def test_unwritable_state_directory_is_a_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "h3edge", "serve", "--state-dir", str(tmp_path / "file"),
                         "--no-multicast"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.strip().startswith("error: state directory") and "Traceback" not in r.stderr
+
+
+def test_far_future_stamps_are_refused_and_later_frames_map(tmp_path):
+    """One frame and one pose stamped 2^63-1 ns are refused (their own drop reasons) before they
+    reach the mapper or the pose buffer; a pose stamped 10^400 is malformed; valid frames after
+    them still map (issue 16, item 1)."""
+    import time
+
+    from h3edge.mapping.field import FieldConfig
+    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.mapping.voxels import VoxelConfig
+    from h3edge.serving.service import MapService, ServiceConfig
+
+    settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128, extent=8.0),
+                           voxels=VoxelConfig(min_points=1),
+                           field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))
+    svc = MapService(settings, ServiceConfig(state_dir=str(tmp_path), checkpoint_interval_s=0.0, memory_budget_mb=256))
+    big = (1 << 63) - 1
+    svc.submit_pose(encode_pose(PoseMessage(big, POSE)))
+    svc.submit_pose(json.dumps({"v": 1, "timestamp_ns": 10 ** 400, "matrix": POSE.tolist()}).encode())
+    assert len(svc.poses) == 0
+    bogus = _msg()
+    bogus.timestamp_ns = big
+    svc.start()
+    try:
+        svc.submit_frame(encode_frame(bogus, "png", "png16"))
+        now = time.time_ns()
+        for k in range(2):
+            good = _msg()
+            good.timestamp_ns, good.frame_id = now + k * 10 ** 8, k
+            good.depth[:] = 2.0  # a wall: voxels with enough points
+            time.sleep(0.3)
+            svc.submit_frame(encode_frame(good, "png", "png16"))
+        end = time.monotonic() + 60
+        while svc.status()["frames"]["mapped"] + svc.status()["frames"]["dropped"] < 3 and time.monotonic() < end:
+            time.sleep(0.1)
+        st = svc.status()
+    finally:
+        svc.stop(checkpoint=False)
+    assert st["dropped"].get("future_timestamp") == 1 and st["dropped"].get("future_pose") == 1
+    assert st["dropped"].get("malformed_pose") == 1
+    assert st["frames"]["mapped"] == 2, st
+    assert svc.mapper.last_timestamp < big * 1e-9

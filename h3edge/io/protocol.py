@@ -38,6 +38,9 @@ _FRAME_KEYS = {"v", "timestamp_ns", "frame_id", "width", "height", "intrinsics",
 _POSE_KEYS = {"v", "timestamp_ns", "frame_name", "t", "q", "matrix"}
 
 
+MAX_TIMESTAMP_NS = (1 << 63) - 1  # stamps are int64 nanoseconds
+
+
 class ProtocolError(ValueError):
     """A message that does not follow the protocol; the text says which part and why."""
 
@@ -152,7 +155,7 @@ def decode_pose(data: bytes) -> PoseMessage:
         raise ProtocolError(f"pose message is not JSON: {e}") from None
     _check_keys(d, _POSE_KEYS, "pose message")
     _check_version(d, "pose message")
-    ts = _int(d, "timestamp_ns", "pose message", 0)
+    ts = _int(d, "timestamp_ns", "pose message", 0, MAX_TIMESTAMP_NS)
     name = d.get("frame_name", "")
     if not isinstance(name, str):
         raise ProtocolError("pose message: frame_name must be a string")
@@ -252,7 +255,7 @@ def decode_frame(data: bytes) -> FrameMessage:
     what = "frame message"
     _check_keys(d, _FRAME_KEYS, what)
     _check_version(d, what)
-    ts = _int(d, "timestamp_ns", what, 0)
+    ts = _int(d, "timestamp_ns", what, 0, MAX_TIMESTAMP_NS)
     fid = _int(d, "frame_id", what, 0)
     w, h = _int(d, "width", what, 1, 16384), _int(d, "height", what, 1, 16384)
     if w * h > MAX_PIXELS:

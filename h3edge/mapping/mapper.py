@@ -245,6 +245,8 @@ class Mapper:
 
         with self.timings.time("priors"):
             new = self.voxels.allocate(depth, frame.intrinsics, pose, points=pts)
+        if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
+            return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
 
         grad = None
         tex = self.settings.texture
@@ -285,7 +287,8 @@ class Mapper:
         """One optimisation step on the keyframes the coverage rule selects, without a current
         frame; its losses, or None when there is nothing to train on yet (or the profile turns
         it off). Timed as ``idle_training``."""
-        if not self.cfg.train_between_frames or self.field is None or not self.keyframes.keyframes:
+        if not self.cfg.train_between_frames or self.field is None or not self.keyframes.keyframes \
+                or len(self.voxels) == 0:
             return None
         with self.timings.time("idle_training"):
             kfs = [k for k in self.keyframes.select() if k.payload is not None]

@@ -255,6 +255,8 @@ class VoxelMap:
         (0 outside); ``located`` = :meth:`locate`'s answer for these points, when the caller has it."""
         vox, frac = self.locate(points.detach().cpu().numpy()) if located is None else located
         inside = torch.from_numpy(vox >= 0).to(points.device)
+        if len(self.voxel_vertices) == 0:  # an empty map: every point is outside
+            return torch.zeros(len(points), dtype=self.priors.dtype, device=points.device), inside
         f = torch.from_numpy(frac.astype(np.float32)).to(points.device)
         vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
         corners = torch.from_numpy(CORNERS).to(points.device).bool()

@@ -64,6 +64,9 @@ class ServiceConfig:
     pose_wait_s: float = 0.3  # how long a frame waits for a pose after its timestamp
     pose_max_gap_s: float = 0.1  # interpolate only between poses at most this far apart
     pose_buffer: int = 4096  # poses kept for association
+    # frames and poses stamped further ahead of this host's clock are refused (future_timestamp /
+    # future_pose): one such stamp would otherwise make every later valid frame stale, for good
+    max_future_s: float = 3600.0
     memory_budget_mb: int = 2048  # the map's memory (tables, voxels, keyframes, query snapshots)
     snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
     max_render_pixels: int = 1280 * 960  # render requests above this are refused
@@ -251,9 +254,16 @@ class MapService:
         except ProtocolError as e:
             self._pose_drop("malformed_pose", str(e))
             return
+        if self._from_future(msg.timestamp_ns):
+            self._pose_drop("future_pose", f"pose at {msg.timestamp_ns} ns is more than {self.cfg.max_future_s:g} s "
+                                           "ahead of this host's clock")
+            return
         why = self.poses.add(msg.timestamp_ns, msg.pose)
         if why:
             self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {msg.timestamp_ns} ns: {why}")
+
+    def _from_future(self, timestamp_ns: int) -> bool:
+        return timestamp_ns > time.time_ns() + int(self.cfg.max_future_s * 1e9)
 
     def _pose_drop(self, code: str, text: str) -> None:
         self._pose_drops[code] += 1
@@ -333,6 +343,11 @@ class MapService:
         except ProtocolError as e:
             self._drops["malformed"] += 1
             self._error("malformed", str(e))
+            return
+        if self._from_future(msg.timestamp_ns):
+            self._drops["future_timestamp"] += 1
+            self._error("future_timestamp", f"frame {msg.frame_id} stamped {msg.timestamp_ns} ns, more than "
+                                            f"{self.cfg.max_future_s:g} s ahead of this host's clock")
             return
         pose = msg.pose
         t_assoc = time.perf_counter()
