@@ -167,3 +167,18 @@ def test_a_frame_that_allocates_nothing_is_dropped_not_crashed():
     assert not r.mapped and m.dropped == {"no_voxels": 1} and m.train_between_frames() is None
     r = m.process(Frame(1, 0.1, color, np.full((24, 32), 2.0, np.float32), np.eye(4), intr))
     assert r.mapped and len(m.voxels) > 0
+
+
+def test_ray_tables_are_a_bounded_counted_cache(tiny_scene):
+    """Frames whose intrinsics differ slightly each time keep at most RAY_TABLES ray tables, and
+    their bytes are in the memory stats (issue 16, item 5)."""
+    from h3edge.mapping.mapper import RAY_TABLES
+
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(LEAN)
+    for k in range(RAY_TABLES + 3):
+        f = seq[k]
+        f.intrinsics = dataclasses.replace(f.intrinsics, fx=f.intrinsics.fx + 1e-4 * k)
+        assert m.process(f).mapped
+    assert len(m._rays_cache) == RAY_TABLES
+    assert m.stats()["memory_bytes"]["ray_tables"] == RAY_TABLES * 12 * f.intrinsics.width * f.intrinsics.height

@@ -299,3 +299,19 @@ def test_far_future_stamps_are_refused_and_later_frames_map(tmp_path):
     assert st["dropped"].get("malformed_pose") == 1
     assert st["frames"]["mapped"] == 2, st
     assert svc.mapper.last_timestamp < big * 1e-9
+
+
+@pytest.mark.parametrize("bad", ["..", "", "a/b", "h3edge/**", "*", "x" * 65, ".hidden", "a b"])
+def test_unsafe_map_ids_are_refused(bad, tmp_path):
+    """A map id is one file name under the state directory and one zenoh key chunk: '..' would
+    write outside the state directory, '*' would be a wildcard (issue 16, item 8)."""
+    from h3edge.errors import InputError
+    from h3edge.mapping.mapper import MapSettings
+    from h3edge.serving.service import MapService, ServiceConfig
+    from h3edge.serving.transport import Keys
+
+    with pytest.raises(InputError, match="map id"):
+        Keys.for_map(bad)
+    with pytest.raises(InputError, match="map id"):
+        MapService(MapSettings(), ServiceConfig(map_id=bad, state_dir=str(tmp_path)))
+    assert not any(tmp_path.iterdir()) and Keys.for_map("robot-1.kitchen_2").base == "h3edge/robot-1.kitchen_2"

@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from h3edge.errors import InputError
 from h3edge.geometry.camera import Intrinsics, rigid_error
 from h3edge.geometry.poses import pose_from_tq
 
@@ -39,6 +41,16 @@ _POSE_KEYS = {"v", "timestamp_ns", "frame_name", "t", "q", "matrix"}
 
 
 MAX_TIMESTAMP_NS = (1 << 63) - 1  # stamps are int64 nanoseconds
+_MAP_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+def check_map_id(map_id: str) -> str:
+    """``map_id`` when it is safe as one zenoh key chunk and one file name (1-64 of letters, digits,
+    ``_ . -``, starting with a letter or digit: no wildcards, no ``/``, no ``..``); InputError if not."""
+    if not isinstance(map_id, str) or not _MAP_ID.fullmatch(map_id):
+        raise InputError(f"map id {map_id!r} must be 1-64 letters, digits, '_', '.' or '-', starting with a "
+                         "letter or digit")
+    return map_id
 
 
 class ProtocolError(ValueError):

@@ -45,6 +45,7 @@ from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
 
 log = logging.getLogger(__name__)
+RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
 
 
 @dataclass(frozen=True)
@@ -181,9 +182,15 @@ class Mapper:
         self.optimizer = torch.optim.Adam(params, lr=self.settings.train.lr)
 
     def _camera_rays(self, intr: Intrinsics) -> np.ndarray:
-        if intr not in self._rays_cache:
-            self._rays_cache[intr] = pixel_rays_camera(intr).reshape(-1, 3).astype(np.float32)
-        return self._rays_cache[intr]
+        """Camera-frame ray table of ``intr``, from a cache of the ``RAY_TABLES`` most recently used
+        intrinsics (each distinct intrinsics would otherwise keep a full table forever)."""
+        rays = self._rays_cache.pop(intr, None)
+        if rays is None:
+            rays = pixel_rays_camera(intr).reshape(-1, 3).astype(np.float32)
+        self._rays_cache[intr] = rays  # most recent last
+        while len(self._rays_cache) > RAY_TABLES:
+            del self._rays_cache[next(iter(self._rays_cache))]
+        return rays
 
     # ------------------------------------------------------------- validation
     def check_frame(self, frame: Frame) -> tuple[str, str]:
@@ -361,4 +368,5 @@ class Mapper:
                 "texture_classes": self.patterns.counts(len(self.voxels)) if self.settings.texture.quasi_heterogeneous else {},
                 "memory_bytes": {"keyframes": kf_bytes, "hash_grids_with_adam": grids,
                                  "priors": len(self.voxels.vertex_keys) * 4 * 3,
+                                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                                  "texture_patterns": self.patterns.nbytes}}

@@ -40,7 +40,8 @@ import numpy as np
 
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
-from h3edge.io.protocol import FrameMessage, ProtocolError, decode_frame, decode_pose, encode_frame, pose_from_json
+from h3edge.io.protocol import (FrameMessage, ProtocolError, check_map_id, decode_frame, decode_pose, encode_frame,
+                                pose_from_json)
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
@@ -120,6 +121,7 @@ class MapService:
         kf = dataclasses.replace(settings.keyframes, max_keyframes=min(
             settings.keyframes.max_keyframes or 1 << 30, self.plan["max_keyframes"]))
         self.settings = dataclasses.replace(settings, keyframes=kf)
+        check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
         self.checkpoint_path = self.state_dir / cfg.map_id / CHECKPOINT_NAME
         check_writable(self.checkpoint_path.parent)

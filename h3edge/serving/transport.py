@@ -25,6 +25,7 @@ import numpy as np
 import zenoh
 
 from h3edge.errors import QueryError
+from h3edge.io.protocol import check_map_id
 
 log = logging.getLogger(__name__)
 
@@ -35,9 +36,7 @@ class Keys:
 
     @classmethod
     def for_map(cls, map_id: str) -> "Keys":
-        if not map_id or any(c in map_id for c in "/*$?#"):
-            raise ValueError(f"map id {map_id!r} must be a non-empty zenoh chunk (no / * $ ? #)")
-        return cls(f"h3edge/{map_id}")
+        return cls(f"h3edge/{check_map_id(map_id)}")
 
     frame = property(lambda self: f"{self.base}/frame")
     pose = property(lambda self: f"{self.base}/pose")
