@@ -315,3 +315,44 @@ def test_unsafe_map_ids_are_refused(bad, tmp_path):
     with pytest.raises(InputError, match="map id"):
         MapService(MapSettings(), ServiceConfig(map_id=bad, state_dir=str(tmp_path)))
     assert not any(tmp_path.iterdir()) and Keys.for_map("robot-1.kitchen_2").base == "h3edge/robot-1.kitchen_2"
+
+
+def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tiny_scene):
+    """The previous checkpoint is kept and --resume falls back to it when the newest is corrupt
+    (and says so); scratch files of a killed write are removed at start; a final checkpoint that
+    fails makes stop() report it (the daemon then exits non-zero) (issue 16, item 7)."""
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.field import FieldConfig
+    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.mapping.voxels import VoxelConfig
+    from h3edge.serving.checkpoint import previous_path
+    from h3edge.serving.service import MapService, ServiceConfig
+
+    settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128),
+                           voxels=VoxelConfig(min_points=3),
+                           field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))
+    cfg = ServiceConfig(map_id="m", state_dir=str(tmp_path), checkpoint_interval_s=0.0, memory_budget_mb=256)
+    seq = ReplicaSequence(tiny_scene)
+    svc = MapService(settings, cfg)
+    for i in range(2):
+        svc.mapper.process(seq[i])
+        svc._write(*svc._capture())
+    ckpt = svc.checkpoint_path
+    assert read_checkpoint(previous_path(ckpt))[0]["frames_mapped"] == 1 and read_checkpoint(ckpt)[0]["frames_mapped"] == 2
+    ckpt.write_bytes(ckpt.read_bytes()[:1000])  # the newest truncated
+    (ckpt.parent / "map.h3ckpt.tmp").write_bytes(b"x" * 100)
+    again = MapService(settings, cfg, resume=True)
+    assert again.resumed_from["fallback"] and again.mapper.frames_mapped == 1
+    assert again.status()["last_error"]["code"] == "checkpoint_fallback"
+    assert not (ckpt.parent / "map.h3ckpt.tmp").exists()
+    previous_path(ckpt).write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="cannot resume"):
+        MapService(settings, cfg, resume=True)
+    ok = MapService(settings, cfg)
+    ok.mapper.process(seq[0])
+    assert ok.stop() is True
+    bad = MapService(settings, cfg)
+    bad.mapper.process(seq[0])
+    bad.checkpoint_path = tmp_path / "not-a-dir" / "x" / "map.h3ckpt"
+    (tmp_path / "not-a-dir").write_text("a file where a directory should be")
+    assert bad.stop() is False and bad.last_error["code"] == "checkpoint"

@@ -52,6 +52,20 @@ def check_writable(directory: Path) -> None:
                               "checkpoints could not be saved: fix its owner / permissions or pass --state-dir") from None
 
 
+def previous_path(path: Path) -> Path:
+    """Where the checkpoint before ``path``'s newest is kept."""
+    path = Path(path)
+    return path.with_name(path.name + ".prev")
+
+
+def remove_leftovers(directory: Path) -> list[Path]:
+    """Delete the scratch files a write killed midway left in ``directory`` (``*.tmp``); returns them."""
+    gone = sorted(Path(directory).glob("*.tmp")) if Path(directory).is_dir() else []
+    for f in gone:
+        f.unlink(missing_ok=True)
+    return gone
+
+
 def write_checkpoint(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> int:
     """Atomically write a checkpoint; returns its size in bytes. The payload is streamed through
     a scratch file (no in-memory copy of it), hashed, then copied behind the header."""
@@ -76,6 +90,8 @@ def write_checkpoint(path: Path, header: dict, arrays: dict[str, np.ndarray]) ->
                 shutil.copyfileobj(pf, f, 1 << 20)
                 f.flush()
                 os.fsync(f.fileno())
+        if path.exists():  # the previous checkpoint stays as the fallback --resume uses
+            os.replace(path, previous_path(path))
         os.replace(tmp, path)
     finally:
         for leftover in (scratch, tmp):

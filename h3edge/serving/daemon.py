@@ -40,6 +40,7 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
     log.info("warm-up (loading compiled kernels) took %.1f s", service.warm_up())
     session = open_session(zconf)
     server = ZenohServer(service, session, cfg.map_id)
+    rc = 0
     try:
         server.start()
         service.start()
@@ -52,7 +53,8 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
             now = time.monotonic()
             if not service.alive:
                 log.error("mapper thread died: exiting for a restart")
-                return 1
+                rc = 1
+                break
             if ping and now - service.heartbeat < 2 * ping:
                 notifier.watchdog()
             if now - last_status > 10:
@@ -61,9 +63,11 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
                                 f"{s['map']['voxels']} voxels")
                 last_status = now
         notifier.stopping()
-        return 0
     finally:
         server.close()
-        service.stop(checkpoint=True)
+        if not service.stop(checkpoint=True):  # the mapped frames since the last checkpoint are lost
+            log.error("final checkpoint failed: %s", (service.last_error or {}).get("message"))
+            rc = rc or 1
         session.close()
-        log.info("h3edge stopped")
+        log.info("h3edge stopped (exit %d)", rc)
+    return rc

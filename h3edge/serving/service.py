@@ -50,8 +50,8 @@ from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
 from h3edge.mapping.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint import (CHECKPOINT_NAME, CheckpointError, check_writable, read_checkpoint,
-                                      write_checkpoint)
+from h3edge.serving.checkpoint import (CHECKPOINT_NAME, CheckpointError, check_writable, previous_path,
+                                      read_checkpoint, remove_leftovers, write_checkpoint)
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,8 @@ class MapService:
         self.state_dir = Path(cfg.state_dir)
         self.checkpoint_path = self.state_dir / cfg.map_id / CHECKPOINT_NAME
         check_writable(self.checkpoint_path.parent)
+        for f in remove_leftovers(self.checkpoint_path.parent):
+            log.warning("removed %s, left by a checkpoint write that did not finish", f)
         # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
         self.decoders = (DecoderRuntime(inference, cache_dir=self.state_dir / cfg.map_id / "trt_cache")
                          if inference.decoders == "onnx" else None)
@@ -159,6 +161,9 @@ class MapService:
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
         self._iteration_log: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=2000)
         self.last_error: dict | None = None
+        if self.resumed_from and self.resumed_from["fallback"]:
+            self._error("checkpoint_fallback", "resumed from the previous checkpoint: "
+                        + "; ".join(self.resumed_from["skipped"]))
         self.last_checkpoint: dict | None = None
         self._last_ckpt_time = time.monotonic()
         self.heartbeat = time.monotonic()
@@ -167,21 +172,35 @@ class MapService:
 
     # ---------------------------------------------------------------- lifecycle
     def _resume(self) -> None:
-        if not self.checkpoint_path.exists():
-            log.info("no checkpoint at %s: starting a new map", self.checkpoint_path)
+        """Resume from the newest checkpoint; when it is missing or unreadable, from the previous one
+        (and say so); CheckpointError when neither can be read."""
+        newest, prev = self.checkpoint_path, previous_path(self.checkpoint_path)
+        if not newest.exists() and not prev.exists():
+            log.info("no checkpoint at %s: starting a new map", newest)
             return
-        try:
-            header, arrays = read_checkpoint(self.checkpoint_path)
-            if header.get("map_id") != self.cfg.map_id:
-                raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.cfg.map_id!r}")
-            self.mapper = restore_mapper(self.settings, header["state"], arrays)
-        except (CheckpointError, ValueError, KeyError) as e:
-            raise CheckpointError(f"cannot resume from {self.checkpoint_path}: {e}") from None
-        self.resumed_from = {"path": str(self.checkpoint_path), "frames_mapped": header["frames_mapped"],
-                             "created_unix": header["created_unix"]}
-        log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.cfg.map_id,
-                 self.checkpoint_path, self.mapper.frames_mapped, len(self.mapper.voxels),
-                 len(self.mapper.keyframes.keyframes))
+        errors = []
+        for path in (newest, prev):
+            if not path.exists():
+                errors.append(f"{path}: missing")
+                continue
+            try:
+                header, arrays = read_checkpoint(path)
+                if header.get("map_id") != self.cfg.map_id:
+                    raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.cfg.map_id!r}")
+                self.mapper = restore_mapper(self.settings, header["state"], arrays)
+            except (CheckpointError, ValueError, KeyError) as e:
+                errors.append(f"{path}: {e}")
+                log.error("cannot resume from %s: %s", path, e)
+                continue
+            self.resumed_from = {"path": str(path), "frames_mapped": header["frames_mapped"],
+                                 "created_unix": header["created_unix"], "fallback": path == prev,
+                                 "skipped": errors}
+            if path == prev:
+                log.warning("resumed from the previous checkpoint %s: %s", path, "; ".join(errors))
+            log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.cfg.map_id, path,
+                     self.mapper.frames_mapped, len(self.mapper.voxels), len(self.mapper.keyframes.keyframes))
+            return
+        raise CheckpointError("cannot resume: " + "; ".join(errors))
 
     def warm_up(self) -> float:
         """Run every kernel once (map two synthetic frames on a throwaway small map, render, mesh),
@@ -211,8 +230,9 @@ class MapService:
         self._thread = threading.Thread(target=self._run, name="h3edge-mapper", daemon=True)
         self._thread.start()
 
-    def stop(self, checkpoint: bool = True, timeout: float = 60.0) -> None:
-        """Stop mapping (the frame in progress finishes), write a final checkpoint."""
+    def stop(self, checkpoint: bool = True, timeout: float = 60.0) -> bool:
+        """Stop mapping (the frame in progress finishes), write a final checkpoint; False when that
+        checkpoint was asked for and failed."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -220,8 +240,9 @@ class MapService:
             self._thread.join(timeout)
         if self._writer is not None:
             self._writer.join(timeout)
+        ok = True
         if checkpoint and self.mapper.field is not None:
-            self._write(*self._capture())
+            ok = self._write(*self._capture())
         else:
             self._write_profile()
         if self.durations is not None:
@@ -229,6 +250,7 @@ class MapService:
         for fut in self._view_requests + self._save_requests:
             if not fut.done():
                 fut.set_exception(QueryError("service stopping"))
+        return ok
 
     @property
     def alive(self) -> bool:
@@ -431,7 +453,7 @@ class MapService:
                   "settings": dataclasses.asdict(self.settings), "state": meta}
         return header, arrays
 
-    def _write(self, header: dict, arrays: dict, futures: list[Future] | None = None) -> None:
+    def _write(self, header: dict, arrays: dict, futures: list[Future] | None = None) -> bool:
         t0 = time.perf_counter()
         try:
             size = write_checkpoint(self.checkpoint_path, json.loads(json.dumps(header, default=str)), arrays)
@@ -444,10 +466,12 @@ class MapService:
                      info["seconds"], self.checkpoint_path)
             for f in futures or []:
                 f.set_result(info)
+            return True
         except Exception as e:
             self._error("checkpoint", f"{type(e).__name__}: {e}")
             for f in futures or []:
                 f.set_exception(QueryError(f"checkpoint failed: {e}"))
+            return False
 
     def _write_profile(self) -> None:
         """``profile.json`` beside the checkpoint (``h3edge profile report <state_dir>/<map_id>``) and
