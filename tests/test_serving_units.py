@@ -356,3 +356,34 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     bad.checkpoint_path = tmp_path / "not-a-dir" / "x" / "map.h3ckpt"
     (tmp_path / "not-a-dir").write_text("a file where a directory should be")
     assert bad.stop() is False and bad.last_error["code"] == "checkpoint"
+
+
+@pytest.mark.parametrize("kind", ["jpeg", "png", "png16"])
+def test_image_bombs_are_refused_from_their_header(kind):
+    """A small image that declares a huge size is refused from its header bytes, before decoding
+    (issue 16, item 4): the colour PNG / JPEG and the 16-bit depth PNG."""
+    import cv2
+
+    from h3edge.io.protocol import encoded_image_size
+
+    big = np.zeros((3000, 2500, 3 if kind != "png16" else 1), np.uint16 if kind == "png16" else np.uint8)
+    ok, buf = cv2.imencode(".jpg" if kind == "jpeg" else ".png", big)
+    assert ok and len(buf) < 2_000_000 and encoded_image_size(buf.tobytes())[:2] == (2500, 3000)
+    msg = _msg()
+    good = encode_frame(msg, "jpeg" if kind == "jpeg" else "png", "png16")
+    d = decode_frame(good)
+    assert d.color.shape == (24, 32, 3)
+    # splice the big image in place of the frame's own colour (or depth) image
+    n = int.from_bytes(good[4:8], "little")
+    header = json.loads(good[8:8 + n])
+    part = "depth" if kind == "png16" else "color"
+    start = 8 + n + (header["color"]["size"] if part == "depth" else 0)
+    body = good[start:start + header[part]["size"]]
+    header[part]["size"] = len(buf)
+    hb = json.dumps(header).encode()
+    rest = good[8 + n:start] + buf.tobytes() + good[start + len(body):]
+    bomb = good[:4] + len(hb).to_bytes(4, "little") + hb + rest
+    with pytest.raises(ProtocolError, match="header says 2500x3000, frame header says 32x24"):
+        decode_frame(bomb)
+    with pytest.raises(ProtocolError):
+        encoded_image_size(b"GIF89a....")

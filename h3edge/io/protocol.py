@@ -219,11 +219,58 @@ def encode_frame(msg: FrameMessage, color_encoding: str = "jpeg", depth_encoding
     return FRAME_MAGIC + struct.pack("<I", len(hb)) + hb + cbytes + dbytes
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def encoded_image_size(data: bytes) -> tuple[int, int, str]:
+    """(width, height, "png" | "jpeg") read from a PNG's IHDR or a JPEG's SOF header bytes, without
+    decoding: what an image claims to be before anything is allocated for it (ProtocolError when the
+    header cannot be read)."""
+    if data[:8] == _PNG_SIGNATURE:
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise ProtocolError("PNG without an IHDR header")
+        w, h = struct.unpack_from(">II", data, 16)
+        return int(w), int(h), "png"
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        while i + 4 <= len(data):
+            if data[i] != 0xFF:
+                raise ProtocolError("JPEG segment does not start with 0xff")
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:  # parameterless
+                i += 2
+                continue
+            (length,) = struct.unpack_from(">H", data, i + 2)
+            if marker in _JPEG_SOF:
+                if i + 9 > len(data):
+                    break
+                h, w = struct.unpack_from(">HH", data, i + 5)
+                return int(w), int(h), "jpeg"
+            if marker in (0xD9, 0xDA) or length < 2:  # end of image / start of scan before any frame header
+                break
+            i += 2 + length
+        raise ProtocolError("JPEG without a frame (SOF) header")
+    raise ProtocolError("image is neither PNG nor JPEG")
+
+
+def _check_declared_size(data: bytes, w: int, h: int, what: str) -> None:
+    """Refuse an image whose header disagrees with the frame's declared size, before decoding it
+    (a small file can declare gigapixels: a decompression bomb)."""
+    iw, ih, kind = encoded_image_size(data)
+    if (iw, ih) != (w, h):
+        raise ProtocolError(f"{what} {kind} header says {iw}x{ih}, frame header says {w}x{h}")
+
+
 def _decode_color(enc: str, data: bytes, w: int, h: int) -> np.ndarray:
     if enc == "raw_rgb8":
         if len(data) != w * h * 3:
             raise ProtocolError(f"raw colour is {len(data)} bytes, {w}x{h}x3 needs {w * h * 3}")
         return np.frombuffer(data, np.uint8).reshape(h, w, 3).copy()
+    _check_declared_size(data, w, h, "colour")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise ProtocolError(f"colour ({enc}) cannot be decoded")
@@ -243,6 +290,7 @@ def _decode_depth(enc: str, data: bytes, w: int, h: int, scale: float) -> np.nda
             raise ProtocolError(f"raw 16-bit depth is {len(data)} bytes, {w}x{h}x2 needs {w * h * 2}")
         raw = np.frombuffer(data, "<u2").reshape(h, w)
     else:
+        _check_declared_size(data, w, h, "depth")
         raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise ProtocolError("depth (png16) cannot be decoded")
