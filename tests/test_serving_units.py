@@ -113,6 +113,21 @@ def test_pose_buffer_interpolates_waits_and_misses():
     assert len(b) == 4
 
 
+def test_an_outlier_pose_refuses_only_the_frames_beside_it():
+    """A pose 100 m off between good ones: frames interpolated across it are misses (implausible
+    speed), frames between good poses still associate, and the buffer keeps its order (issue 16,
+    item 3)."""
+    b = PoseBuffer(capacity=100, max_gap_s=0.1)
+    far = POSE.copy()
+    far[:3, 3] += 100.0
+    for k in range(10):
+        assert b.add(k * 33_000_000, far if k == 5 else POSE) == ""
+    for t in (150_000_000, 180_000_000):  # between poses 4 and 5, and 5 and 6
+        state, why = b.lookup(t)
+        assert state == "miss" and "outlier" in why
+    assert b.lookup(100_000_000)[0] == "ok" and b.lookup(250_000_000)[0] == "ok"
+
+
 def test_checkpoint_atomic_and_checked(tmp_path):
     p = tmp_path / "m" / "map.h3ckpt"
     arrays = {"a": np.arange(10.0), "b/c": np.ones((3, 2), np.uint8)}

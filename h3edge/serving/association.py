@@ -7,7 +7,10 @@ a frame timestamp with
 * ``("ok", pose)``: an exact match, or the interpolation between the poses just before and just
   after it when they are at most ``max_gap`` apart;
 * ``("wait", None)``: no pose at or after the timestamp yet (the caller waits a little);
-* ``("miss", reason)``: the poses around it are too far apart, or it is older than the buffer.
+* ``("miss", reason)``: the poses around it are too far apart in time, or imply a motion faster
+  than ``max_speed`` (one of them is an outlier: the frame is refused, the buffer is not changed,
+  so one bad pose affects only the frames stamped next to it and ages out with the buffer), or
+  the frame is older than the buffer.
 
 Thread-safe: the zenoh callback adds, the mapper thread looks up.
 """
@@ -24,9 +27,10 @@ from h3edge.geometry.poses import interpolate_pose
 
 
 class PoseBuffer:
-    def __init__(self, capacity: int = 4096, max_gap_s: float = 0.1):
+    def __init__(self, capacity: int = 4096, max_gap_s: float = 0.1, max_speed: float = 20.0):
         self.capacity = capacity
         self.max_gap_ns = int(max_gap_s * 1e9)
+        self.max_speed = max_speed  # m/s between two buffered poses a frame is interpolated from
         self._t: list[int] = []
         self._poses: list[np.ndarray] = []
         self._lock = threading.Lock()
@@ -62,4 +66,8 @@ class PoseBuffer:
             a, b = self._poses[i - 1], self._poses[i]
         if t1 - t0 > self.max_gap_ns:
             return "miss", f"poses around the frame are {(t1 - t0) / 1e6:.1f} ms apart (max {self.max_gap_ns / 1e6:.1f})"
+        speed = float(np.linalg.norm(b[:3, 3] - a[:3, 3])) / ((t1 - t0) * 1e-9)
+        if speed > self.max_speed:
+            return "miss", (f"the poses around the frame imply {speed:.3g} m/s (max {self.max_speed:g}): "
+                            "one of them is an outlier")
         return "ok", interpolate_pose(a, b, (timestamp_ns - t0) / (t1 - t0))

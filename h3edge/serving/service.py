@@ -65,6 +65,7 @@ class ServiceConfig:
     pose_wait_s: float = 0.3  # how long a frame waits for a pose after its timestamp
     pose_max_gap_s: float = 0.1  # interpolate only between poses at most this far apart
     pose_buffer: int = 4096  # poses kept for association
+    pose_max_speed: float = 20.0  # m/s: two poses implying more are not interpolated between (an outlier)
     # frames and poses stamped further ahead of this host's clock are refused (future_timestamp /
     # future_pose): one such stamp would otherwise make every later valid frame stale, for good
     max_future_s: float = 3600.0
@@ -130,7 +131,7 @@ class MapService:
         # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
         self.decoders = (DecoderRuntime(inference, cache_dir=self.state_dir / cfg.map_id / "trt_cache")
                          if inference.decoders == "onnx" else None)
-        self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s)
+        self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s, cfg.pose_max_speed)
         self.mapper = Mapper(self.settings)
         self.resumed_from: dict | None = None
         if resume:
