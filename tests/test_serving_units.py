@@ -402,3 +402,33 @@ def test_image_bombs_are_refused_from_their_header(kind):
         decode_frame(bomb)
     with pytest.raises(ProtocolError):
         encoded_image_size(b"GIF89a....")
+
+
+def test_overloaded_queries_get_a_busy_error_reply():
+    """A query that finds its queue full is answered with an error saying busy / retry, not an
+    empty reply the client reads as 'is the service running?' (issue 16, item 5)."""
+    from h3edge.serving.transport import ZenohServer
+
+    class FakeQuery:
+        key_expr = "h3edge/m/render"
+
+        def __init__(self):
+            self.errors, self.closed = [], False
+
+        def reply_err(self, text):
+            self.errors.append(text)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.closed = True
+
+    server = ZenohServer(service=None, session=None, map_id="m")
+    cb = server._enqueue(server._heavy, lambda q: (b"", None))
+    queries = [FakeQuery() for _ in range(server._heavy.maxsize + 3)]
+    for q in queries:
+        cb(q)
+    refused = [q for q in queries if q.errors]
+    assert len(refused) == 3 and all(q.closed and "busy" in q.errors[0] and "retry" in q.errors[0] for q in refused)
+    assert server._heavy.qsize() == server._heavy.maxsize

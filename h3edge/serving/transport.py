@@ -105,8 +105,11 @@ class ZenohServer:
         def cb(query) -> None:
             try:
                 q.put_nowait((query, fn))
-            except queue.Full:  # the dropped query's querier gets an empty answer, not a hang
-                log.warning("query queue full: dropped a query on %s", query.key_expr)
+            except queue.Full:  # refused with an error reply saying so, never an empty answer
+                log.warning("query queue full: refused a query on %s", query.key_expr)
+                with query:
+                    query.reply_err(f"busy: {q.maxsize} queries on {query.key_expr} already waiting; retry after "
+                                    "a second")
         return cb
 
     def _work(self, q: queue.Queue) -> None:
@@ -160,7 +163,7 @@ class ZenohServer:
                     raise ValueError("aabb needs 6 numbers")
                 aabb = [v[:3], v[3:]]
             res = int(req["resolution"]) if "resolution" in req else None
-        except ValueError as e:
+        except (ValueError, TypeError, OverflowError) as e:
             raise QueryError(f"mesh request: {e}") from None
         fmt = str(req.get("format", "ply"))
         data = self.service.mesh(fmt, res, aabb)
