@@ -228,7 +228,7 @@ def test_update_finds_stripe_directions_on_a_synthetic_wall():
 
 # ----------------------------------------------------------------- encoder
 def test_encoder_blocks_are_zero_padded_and_train_one_table():
-    enc, _ = _encoder()
+    enc, _ = _encoder(TextureConfig(scaling_everywhere=False))  # the paper's layout
     ijk = np.array([[1, 1, 1], [2, 1, 1], [3, 1, 1]])
     cls = np.array([PLAIN, WEAK, RICH], np.int8)
     dirs = np.zeros((3, 2, 3))
@@ -253,7 +253,7 @@ def test_encoder_blocks_are_zero_padded_and_train_one_table():
 
 @pytest.mark.parametrize("flag", ["warp_rich", "warp_weak"])
 def test_warp_switches(flag):
-    enc, _ = _encoder(TextureConfig(**{flag: False}))
+    enc, _ = _encoder(TextureConfig(scaling_everywhere=False, **{flag: False}))
     ijk = np.array([[1, 1, 1], [2, 1, 1]])
     dirs = np.zeros((2, 2, 3))
     dirs[1, 0] = unit([1, 0, 0])
