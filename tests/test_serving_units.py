@@ -432,3 +432,33 @@ def test_overloaded_queries_get_a_busy_error_reply():
     refused = [q for q in queries if q.errors]
     assert len(refused) == 3 and all(q.closed and "busy" in q.errors[0] and "retry" in q.errors[0] for q in refused)
     assert server._heavy.qsize() == server._heavy.maxsize
+
+
+def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):
+    """At most one save per save_min_interval_s; a wildcard query reaching the save queryable writes
+    nothing (issue 16, item 6)."""
+    from h3edge.errors import QueryError
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.field import FieldConfig
+    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.mapping.voxels import VoxelConfig
+    from h3edge.serving.service import MapService, ServiceConfig
+    from h3edge.serving.transport import ZenohServer
+
+    settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128), voxels=VoxelConfig(min_points=3),
+                           field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))
+    svc = MapService(settings, ServiceConfig(map_id="m", state_dir=str(tmp_path), checkpoint_interval_s=0.0,
+                                             memory_budget_mb=256, save_min_interval_s=30.0))
+    svc.mapper.process(ReplicaSequence(tiny_scene)[0])
+    assert svc.save()["frames_mapped"] == 1
+    with pytest.raises(QueryError, match="save refused.*at most one per 30 s"):
+        svc.save()
+
+    class WildcardQuery:
+        key_expr = "h3edge/m/**"
+
+    server = ZenohServer(svc, session=None, map_id="m")
+    before = svc.checkpoint_path.stat().st_mtime_ns
+    with pytest.raises(QueryError, match="exact key h3edge/m/save"):
+        server._save(WildcardQuery())
+    assert svc.checkpoint_path.stat().st_mtime_ns == before

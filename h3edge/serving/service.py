@@ -74,6 +74,7 @@ class ServiceConfig:
     max_render_pixels: int = 1280 * 960  # render requests above this are refused
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
     query_timeout_s: float = 60.0
+    save_min_interval_s: float = 10.0  # save requests closer together than this are refused
     timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
 
 
@@ -152,6 +153,7 @@ class MapService:
         self._view_requests: list[Future] = []
         self._save_requests: list[Future] = []
         self._req_lock = threading.Lock()
+        self._last_save_request: float | None = None
         self._view: MapView | None = None
         self._view_time = 0.0
         self._counts = collections.Counter()  # service-level counters
@@ -444,6 +446,15 @@ class MapService:
         return self._ask(self._view_requests)
 
     def save(self) -> dict:
+        """Checkpoint now (at most one per ``save_min_interval_s``; QueryError otherwise)."""
+        now = time.monotonic()
+        with self._req_lock:
+            last = self._last_save_request
+            if last is not None and now - last < self.cfg.save_min_interval_s:
+                raise QueryError(f"save refused: the last one was asked {now - last:.1f} s ago; at most one per "
+                                 f"{self.cfg.save_min_interval_s:g} s (retry after "
+                                 f"{self.cfg.save_min_interval_s - (now - last):.1f} s)")
+            self._last_save_request = now
         return self._ask(self._save_requests)
 
     def _capture(self) -> tuple[dict, dict]:

@@ -173,6 +173,8 @@ class ZenohServer:
         return self.service.render(self._request(query)), zenoh.Encoding.APPLICATION_OCTET_STREAM
 
     def _save(self, query):
+        if str(query.key_expr) != self.keys.save:  # a wildcard query must not write a checkpoint
+            raise QueryError(f"save needs the exact key {self.keys.save}, not {query.key_expr}")
         return json.dumps(self.service.save()).encode(), zenoh.Encoding.APPLICATION_JSON
 
     def close(self) -> None:
