@@ -13,12 +13,11 @@ compared (this machine is shared). Output: a markdown table and JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
 
-from h3edge.bench.tables import markdown_table
+from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.tsdf import fuse_tsdf
@@ -83,12 +82,7 @@ def main(argv=None) -> int:
                  res["depth_l1_cm"])
     title = (f"{args.sequence}: {len(seq)} frames mapped in {map_s:.0f} s ({mapper.iterations['frame']} iterations), "
              f"then keyframe iterations only; {len(held)} held-out views, {args.views} evaluated")
-    table = markdown_table(title, COLUMNS, rows)
-    print(table, flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"title": title, "rows": rows}, indent=1) + "\n")
-    out.with_suffix(".md").write_text(table + "\n")
+    write_table(args.out, title, COLUMNS, rows)
     return 0
 
 

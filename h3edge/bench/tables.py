@@ -1,9 +1,11 @@
-"""Shared benchmark helpers: markdown tables (a column is (header, value of a row, decimals)) and
-median wall-clock timings."""
+"""Shared benchmark helpers: markdown tables (a column is (header, value of a row, decimals)), written
+as OUT.md + OUT.json, and median wall-clock timings."""
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -34,3 +36,14 @@ def median_time(fn: Callable[[], object], repeats: int, warmup: bool = True) -> 
         fn()
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts))
+
+
+def write_table(out: str | Path, title: str, columns: list[Column], rows: list[dict]) -> str:
+    """Print the markdown table and write it as OUT.md, with ``{"title", "rows"}`` as OUT.json."""
+    table = markdown_table(title, columns, rows)
+    print(table, flush=True)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps({"title": title, "rows": rows}, indent=1) + "\n")
+    out.with_suffix(".md").write_text(table + "\n")
+    return table

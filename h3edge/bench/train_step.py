@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ import numpy as np
 import torch
 
 from h3edge.bench.continuous import open_named
-from h3edge.bench.tables import markdown_table
+from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.rendering import colour_samples
@@ -73,15 +72,10 @@ def main(argv=None) -> int:
              "speedup": base / float(np.median(v))} for f, v in times.items()]
     title = (f"training step, {len(batches[0].depth)} rays, {args.sequence} after {args.frames} frames "
              f"({args.profile}, medians of {args.rounds - 1} rounds x {args.batches} batches)")
-    table = markdown_table(title, [("colour weight floor", lambda r: r["floor"], None),
-                                   ("band samples coloured", lambda r: f"{100 * r['band_share']:.0f} %", None),
-                                   ("step [ms]", lambda r: r["step_ms"], 1),
-                                   (f"speed-up vs floor {args.floors[0]:g}", lambda r: r["speedup"], 2)], rows)
-    print(table, flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"title": title, "rows": rows}, indent=1) + "\n")
-    out.with_suffix(".md").write_text(table + "\n")
+    write_table(args.out, title, [("colour weight floor", lambda r: r["floor"], None),
+                                  ("band samples coloured", lambda r: f"{100 * r['band_share']:.0f} %", None),
+                                  ("step [ms]", lambda r: r["step_ms"], 1),
+                                  (f"speed-up vs floor {args.floors[0]:g}", lambda r: r["speedup"], 2)], rows)
     return 0
 
 
