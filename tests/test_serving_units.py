@@ -462,3 +462,15 @@ def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):
     with pytest.raises(QueryError, match="exact key h3edge/m/save"):
         server._save(WildcardQuery())
     assert svc.checkpoint_path.stat().st_mtime_ns == before
+
+
+@pytest.mark.parametrize("payload", [b"[" * 100_000 + b"]" * 100_000,
+                                     b'{"v": 1, "timestamp_ns": ' + b"9" * 5000 + b', "matrix": []}'])
+def test_hostile_json_is_malformed_not_an_internal_error(payload):
+    """Deeply nested JSON and 5000-digit integers are protocol errors (the pose key counted them
+    nowhere, raising inside the zenoh callback) (issue 16, item 8)."""
+    with pytest.raises(ProtocolError, match="not JSON"):
+        decode_pose(payload)
+    frame = b"H3FR" + len(payload).to_bytes(4, "little") + payload
+    with pytest.raises(ProtocolError):  # too long a header, or not JSON
+        decode_frame(frame)

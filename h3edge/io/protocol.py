@@ -163,7 +163,7 @@ def encode_pose(msg: PoseMessage) -> bytes:
 def decode_pose(data: bytes) -> PoseMessage:
     try:
         d = json.loads(bytes(data).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (ValueError, RecursionError) as e:  # bad UTF-8 or JSON, 4300+ digit integers, deep nesting
         raise ProtocolError(f"pose message is not JSON: {e}") from None
     _check_keys(d, _POSE_KEYS, "pose message")
     _check_version(d, "pose message")
@@ -310,7 +310,7 @@ def decode_frame(data: bytes) -> FrameMessage:
         raise ProtocolError(f"frame header length {n} does not fit the {len(data)}-byte message")
     try:
         d = json.loads(data[8:8 + n].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (ValueError, RecursionError) as e:  # bad UTF-8 or JSON, 4300+ digit integers, deep nesting
         raise ProtocolError(f"frame header is not JSON: {e}") from None
     what = "frame message"
     _check_keys(d, _FRAME_KEYS, what)

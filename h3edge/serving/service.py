@@ -275,7 +275,16 @@ class MapService:
         self.mapper.timings.add("ingest", time.perf_counter() - t0)
 
     def submit_pose(self, data: bytes) -> None:
+        """Parse and buffer a pose message (called from the transport's thread; never raises: a
+        pose that cannot be used is a counted drop)."""
         self._counts["poses_received"] += 1
+        try:
+            self._add_pose(data)
+        except Exception as e:  # noqa: BLE001 - a bug must not escape into the zenoh callback
+            log.exception("pose failed")
+            self._pose_drop("internal_error_pose", f"{type(e).__name__}: {e}")
+
+    def _add_pose(self, data: bytes) -> None:
         try:
             msg = decode_pose(data)
         except ProtocolError as e:

@@ -136,7 +136,7 @@ class ZenohServer:
             if raw:
                 try:
                     out = json.loads(raw)
-                except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                except (ValueError, RecursionError) as e:  # bad UTF-8 or JSON, huge integers, deep nesting
                     raise QueryError(f"query payload must be JSON: {e}") from None
                 if not isinstance(out, dict):
                     raise QueryError("query payload must be a JSON object")
