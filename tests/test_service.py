@@ -106,6 +106,7 @@ def test_render_query(served):
 
 @pytest.mark.parametrize("request_, match", [
     ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 5000, "height": 5000}, "exceeds"),
+    ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 1228800, "height": 1}, "1..16384"),  # at the pixel cap
     ({"width": 64, "height": 48}, "needs"),
     ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 2]}}, "unit quaternion"),
     ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "colour": 1}, "unknown"),

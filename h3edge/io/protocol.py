@@ -33,6 +33,7 @@ VERSION = 1
 FRAME_MAGIC = b"H3FR"
 MAX_HEADER = 64 * 1024
 MAX_PIXELS = 4096 * 4096
+MAX_SIDE = 16384  # px, width or height of a frame (what a client's decoder and PNG can take)
 COLOR_ENCODINGS = ("jpeg", "png", "raw_rgb8")
 DEPTH_ENCODINGS = ("png16", "raw_u16", "raw_f32")
 _FRAME_KEYS = {"v", "timestamp_ns", "frame_id", "width", "height", "intrinsics", "depth_scale", "color", "depth",
@@ -317,7 +318,7 @@ def decode_frame(data: bytes) -> FrameMessage:
     _check_version(d, what)
     ts = _int(d, "timestamp_ns", what, 0, MAX_TIMESTAMP_NS)
     fid = _int(d, "frame_id", what, 0)
-    w, h = _int(d, "width", what, 1, 16384), _int(d, "height", what, 1, 16384)
+    w, h = _int(d, "width", what, 1, MAX_SIDE), _int(d, "height", what, 1, MAX_SIDE)
     if w * h > MAX_PIXELS:
         raise ProtocolError(f"{what}: {w}x{h} exceeds the {MAX_PIXELS}-pixel limit")
     intr_d = d.get("intrinsics")

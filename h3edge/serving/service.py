@@ -40,8 +40,8 @@ import numpy as np
 
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
-from h3edge.io.protocol import (FrameMessage, ProtocolError, check_map_id, decode_frame, decode_pose, encode_frame,
-                                pose_from_json)
+from h3edge.io.protocol import (MAX_SIDE, FrameMessage, ProtocolError, check_map_id, decode_frame, decode_pose,
+                                encode_frame, pose_from_json)
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
@@ -612,8 +612,8 @@ class MapService:
             w, h = int(request.get("width", 320)), int(request.get("height", 240))
         except (TypeError, ValueError):
             raise QueryError("width and height must be integers") from None
-        if w <= 0 or h <= 0:
-            raise QueryError("width and height must be positive")
+        if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
+            raise QueryError(f"width and height must be in 1..{MAX_SIDE}, got {w}x{h}")
         if w * h > self.cfg.max_render_pixels:
             raise QueryError(f"{w}x{h} = {w * h} pixels exceeds this service's cap of {self.cfg.max_render_pixels}")
         if "pose" not in request or not isinstance(request["pose"], dict):
