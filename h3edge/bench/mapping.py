@@ -16,8 +16,8 @@ Peer: Open3D's ``VoxelBlockGrid`` TSDF fusion (CPU) when ``open3d`` imports, at 
 (1 cm) with a 4-voxel truncation; its mesh is rendered with vertex colours for PSNR / SSIM / Depth L1.
 Both run in this process on the same frames; per-frame time is the median of the per-frame
 integration time (TSDF) or whole-frame time including reading and decoding (h3edge). Beside Depth L1:
-the share of valid pixels rendered "off", > 5 cm (Replica: 10 cm) in front of / behind the sensor depth, and the median
-error. Output: a markdown table and JSON, and one picture per dataset (OUT_<dataset>.png; rows are
+the share of valid pixels rendered "off", > 5 cm (Replica: 10 cm) in front of / behind the sensor
+depth, and the median error. Output: a markdown table and JSON, and one picture per dataset (OUT_<dataset>.png; rows are
 held-out views; columns: sensor colour | h3edge | TSDF | h3edge depth error | TSDF depth error,
 red = > 5 cm in front of the sensor depth, blue = > 5 cm behind, grey = within, white = not
 rendered, black = no sensor depth).
