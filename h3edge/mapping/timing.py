@@ -27,7 +27,8 @@ import numpy as np
 PAPER_COMPONENTS = ("read", "priors", "texture", "keyframes", "training")
 LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
           "texture": "texture pattern determination", "keyframes": "keyframe policy",
-          "training": "map training", "mesh": "mesh extraction", "render": "render at pose",
+          "training": "map training", "idle_training": "training between frames", "mesh": "mesh extraction",
+          "render": "render at pose",
           "frame": "whole frame", "ingest": "ingest (zenoh callback)", "queue_wait": "queue wait",
           "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write"}
 
