@@ -107,3 +107,9 @@ def apply_overrides(settings: MapSettings, overrides: list[str]) -> MapSettings:
         sub = getattr(settings, section)
         settings = dataclasses.replace(settings, **{section: dataclasses.replace(sub, **{name: value})})
     return settings
+
+
+def parse_variant(spec: str, base: MapSettings) -> tuple[str, MapSettings]:
+    """``'LABEL:section.key=value;section.key=value'`` -> (label, ``base`` with those overrides)."""
+    label, _, sets = spec.partition(":")
+    return label, apply_overrides(base, [x for x in sets.split(";") if x])

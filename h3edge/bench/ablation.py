@@ -40,9 +40,8 @@ import cv2
 import numpy as np
 
 from h3edge.bench.tables import markdown_table
-from h3edge.config import Profile, apply_overrides, load_profile
+from h3edge.config import Profile, load_profile, parse_variant
 from h3edge.eval.metrics import psnr
-from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.offline import run_offline
 from h3edge.mapping.texture_patterns import PLAIN, RICH, WEAK
@@ -109,15 +108,13 @@ def run_variant(seq, profile: Profile, settings: MapSettings, run_dir: Path, fra
 def designed_kinds(seq):
     """Per held-out view, a function giving the designed texture kind of each pixel's surface
     (weak / stripes / rich) of a simulated scene; None for other data."""
-    from h3edge.sim.make import SimSpec
+    from h3edge.sim.make import scene_spec
     from h3edge.sim.scene import build_room
     from h3edge.sim.sensor import RoomRenderer
 
-    try:
-        spec = json.loads((Path(seq.root) / "meta.json").read_text())["spec"]
-    except (OSError, ValueError, KeyError):
+    spec = scene_spec(seq.root)
+    if spec is None:
         return None
-    spec = SimSpec(**{"layout": "room", **spec})
     room = build_room(spec.seed, layout=spec.layout)
     caster, kinds = RoomRenderer(room).raycaster, np.array(room.surface_kinds)
 
@@ -256,27 +253,23 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/ablation", help="writes OUT.md, OUT.json, OUT_curve.png, OUT_classes.png")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from h3edge.sim.make import PRESETS, ensure_scene
 
     profile = load_profile(args.profile)
     profile = dataclasses.replace(profile, eval=dataclasses.replace(profile.eval, max_views=args.max_views))
-    if args.scene == "real":
-        from h3edge.bench.mapping import REAL
+    from h3edge.bench.mapping import REAL, open_dataset
 
-        if not REAL.is_dir():
-            log.error("%s not present", REAL)
-            return 2
-        seq = ReplicaSequence(REAL)
-    else:
-        seq = ReplicaSequence(ensure_scene(Path(f"out/bench_mapping/scene_{args.scene}"), PRESETS[args.scene]))
+    if args.scene == "real" and not REAL.is_dir():
+        log.error("%s not present", REAL)
+        return 2
+    seq = open_dataset(args.scene, Path("out/bench_mapping"))
     kinds_of = designed_kinds(seq)
     work, out = Path(args.work) / args.scene, Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows, classes = [], None
     todo = variants(profile.map_settings(), args.iterations)
     for v in args.variant:
-        label, _, sets = v.partition(":")
-        todo[label] = ("II", apply_overrides(profile.map_settings(), [x for x in sets.split(";") if x]))
+        label, settings = parse_variant(v, profile.map_settings())
+        todo[label] = ("II", settings)
     for name, (table, settings) in todo.items():
         if args.only and name not in args.only:
             continue

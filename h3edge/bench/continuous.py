@@ -17,11 +17,11 @@ import logging
 import time
 from pathlib import Path
 
+from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.tsdf import fuse_tsdf
-from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.offline import map_sequence
 
@@ -33,17 +33,6 @@ COLUMNS = [("map", lambda r: r["map"], None), ("extra iterations", lambda r: r.g
            ("Depth L1 [cm]", lambda r: r["depth_l1_cm"], 3),
            ("> 5 cm in front [%]", lambda r: 100 * r["front_share"], 2),
            ("> 5 cm behind [%]", lambda r: 100 * r["behind_share"], 2)]
-
-
-def open_named(name: str, work: Path):
-    from h3edge.bench.mapping import REAL
-    from h3edge.sim.make import PRESETS, ensure_scene
-
-    if name == "real":
-        return ReplicaSequence(REAL)
-    if name in PRESETS:
-        return ReplicaSequence(ensure_scene(work / f"scene_{name}", PRESETS[name]))
-    return ReplicaSequence(Path(name))
 
 
 def main(argv=None) -> int:
@@ -58,7 +47,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/bench_continuous", help="writes OUT.md and OUT.json")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    seq = open_named(args.sequence, Path(args.work))
+    seq = open_dataset(args.sequence, Path(args.work))
     held = seq.heldout if seq.heldout is not None and len(seq.heldout) else seq
     profile = load_profile(args.profile)
     threshold = profile.eval.depth_error_threshold

@@ -44,7 +44,7 @@ import numpy as np
 import trimesh
 
 from h3edge.bench.tables import cell, markdown_table
-from h3edge.config import apply_overrides, load_profile
+from h3edge.config import apply_overrides, load_profile, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate
 from h3edge.eval.metrics import depth_error_map
 from h3edge.eval.tsdf import fuse_tsdf
@@ -57,6 +57,18 @@ log = logging.getLogger("h3edge.bench.mapping")
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 REPLICA = SHARED / "replica_office0"
 REAL = SHARED / "7scenes_redkitchen_dev"
+
+
+def open_dataset(name: str, work: Path) -> ReplicaSequence:
+    """A benchmark dataset by name: ``real`` (the 7-Scenes dev set), a simulated preset (``default``,
+    ``studio``, ``tiny``: made once under ``work/scene_<name>``) or a sequence directory."""
+    from h3edge.sim.make import PRESETS, ensure_scene
+
+    if name == "real":
+        return ReplicaSequence(REAL)
+    if name in PRESETS:
+        return ReplicaSequence(ensure_scene(Path(work) / f"scene_{name}", PRESETS[name]))
+    return ReplicaSequence(Path(name))
 
 
 def render_replica(root: Path, out: Path, stride: int) -> Path:
@@ -197,28 +209,24 @@ def main(argv=None) -> int:
     ap.add_argument("--settle-s", type=float, default=0.0, help="the live replay's training after the last frame")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from h3edge.sim.make import PRESETS, ensure_scene
 
     profile = load_profile(args.profile)
     settings = apply_overrides(profile.map_settings(), args.set)
-    variants = {}
-    for v in args.variant:
-        label, _, sets = v.partition(":")
-        variants[label] = apply_overrides(settings, [x for x in sets.split(";") if x])
+    variants = dict(parse_variant(v, settings) for v in args.variant)
     work = Path(args.work)
     results, tables = [], []
     for ds in args.datasets:
         if ds == "sim":
-            seq = ReplicaSequence(ensure_scene(work / "scene_default", PRESETS["default"]))
+            seq = open_dataset("default", work)
             title = "default simulated scene (640x480)"
         elif ds == "studio":
-            seq = ReplicaSequence(ensure_scene(work / "scene_studio", PRESETS["studio"]))
+            seq = open_dataset("studio", work)
             title = "second simulated scene, studio (640x480, 300 frames, 30 held out)"
         elif ds == "real":
             if not REAL.is_dir():
                 log.warning("real skipped: %s not present", REAL)
                 continue
-            seq = ReplicaSequence(REAL)
+            seq = open_dataset("real", work)
             title = "real Kinect v1: 7-Scenes redkitchen dev (270 frames, 30 held out, 640x480; no GT mesh)"
         else:
             if not REPLICA.is_dir():

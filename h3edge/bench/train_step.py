@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from h3edge.bench.continuous import open_named
+from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.mapping.mapper import Mapper
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/bench_train_step")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    seq = open_named(args.sequence, Path(args.work))
+    seq = open_dataset(args.sequence, Path(args.work))
     m = Mapper(load_profile(args.profile).map_settings())
     for i in range(min(args.frames, len(seq))):
         m.process(seq[i])

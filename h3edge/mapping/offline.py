@@ -20,7 +20,7 @@ import numpy as np
 from h3edge.config import Profile
 from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence, write_color, write_depth
-from h3edge.mapping.mapper import Mapper
+from h3edge.mapping.mapper import FrameResult, Mapper
 from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.mapping.timing import DurationLog, format_timings
 
@@ -40,8 +40,6 @@ def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, strid
     after the last frame, keep training that long (the robot standing still). Returns one
     :class:`~h3edge.mapping.mapper.FrameResult` per frame, skipped ones included.
     """
-    from h3edge.mapping.mapper import FrameResult
-
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     results = []
     t_start = clock()

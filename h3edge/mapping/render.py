@@ -89,8 +89,8 @@ class PriorLookup:
         self.vs = voxels.cfg.voxel_size
         self.vv = voxels.voxel_vertices
         self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
-
-        self.observed = voxels.prior_set.astype(np.float64)
+        self.prior_set = voxels.prior_set
+        self._observed: np.ndarray | None = None  # prior_set as values to interpolate, on first use
 
     def __call__(self, pts: np.ndarray, values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(trilinear prior, voxel id) at ``pts``; ``values``: interpolate these per-vertex values
@@ -107,7 +107,9 @@ class PriorLookup:
     def support(self, pts: np.ndarray) -> np.ndarray:
         """Share of the trilinear weight at ``pts`` that falls on vertices whose prior was set from
         a depth observation (0 outside the allocated voxels): where the map has evidence."""
-        share, vox = self(pts, self.observed)
+        if self._observed is None:
+            self._observed = self.prior_set.astype(np.float64)
+        share, vox = self(pts, self._observed)
         return np.where(vox >= 0, share, 0.0)
 
 

@@ -45,11 +45,8 @@ def composite(sdf: torch.Tensor, depth: torch.Tensor, color: torch.Tensor | None
     d = (a * depth).sum(-1) / norm * hit
     if color is None:
         c = torch.zeros(sdf.shape[0], 3, dtype=sdf.dtype, device=sdf.device)
-    elif color_mask is None:
-        c = (a[..., None] * color).sum(-2) / norm[:, None] * hit[:, None]
-    else:
-        ac = a * color_mask
-        csum = ac.sum(-1)
+    else:  # normalised over the weights of the samples whose colour is known (all of them by default)
+        ac, csum = (a, norm) if color_mask is None else (a * color_mask, (a * color_mask).sum(-1))
         c = (ac[..., None] * color).sum(-2) / torch.where(csum > 0, csum, torch.ones_like(csum))[:, None] * hit[:, None]
     return RenderedRays(d, c, wsum, hit)
 

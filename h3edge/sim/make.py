@@ -108,17 +108,20 @@ def make_scene(out: str | Path, spec: SimSpec) -> dict:
     return summary
 
 
+def scene_spec(root: str | Path) -> SimSpec | None:
+    """The spec a scene directory was made from (its ``meta.json``), None when it is not one."""
+    try:
+        spec = json.loads((Path(root) / "meta.json").read_text())["spec"]
+        return SimSpec(**{"layout": "room", **spec})  # scenes made before layouts are rooms
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def ensure_scene(out: str | Path, spec: SimSpec) -> Path:
     """Make the scene unless ``out`` already holds one made from the same spec (a cache)."""
     out = Path(out)
-    meta = out / "meta.json"
-    if meta.is_file():
-        try:
-            made = {"layout": "room", **json.loads(meta.read_text()).get("spec", {})}  # made before layouts
-            if made == asdict(spec):
-                log.info("using cached scene %s", out)
-                return out
-        except json.JSONDecodeError:
-            pass
+    if scene_spec(out) == spec:
+        log.info("using cached scene %s", out)
+        return out
     make_scene(out, spec)
     return out
