@@ -29,7 +29,7 @@ def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, d0, d1, d2, c):
     wx = fx if (c & 1) else 1.0 - fx
     wy = fy if ((c >> 1) & 1) else 1.0 - fy
     wz = fz if ((c >> 2) & 1) else 1.0 - fz
-    if side > 0:
+    if side > 0 and 0 <= cx < side and 0 <= cy < side and 0 <= cz < side:
         h = cx + side * (cy + side * cz)
     else:
         h = (cx * p0 + d0) ^ (cy * p1 + d1) ^ (cz * p2 + d2)

@@ -7,15 +7,50 @@ in every process: the first render of a service would have paid it).
 import math
 
 import numba as nb
+import numpy as np
+
+
+_BITS = 21  # as h3edge.mapping.voxels packs keys
+_OFF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
 @nb.njit(inline="always")
-def voxel_at(cx, cy, cz, grid, g0):
-    """Voxel id (or -1) of the voxel with integer corner (cx, cy, cz), through the dense id grid."""
-    ix, iy, iz = int(cx) - g0[0], int(cy) - g0[1], int(cz) - g0[2]
-    if not (0 <= ix < grid.shape[0] and 0 <= iy < grid.shape[1] and 0 <= iz < grid.shape[2]):
+def slot_of(key, mask):
+    """Home slot of a packed voxel key in a table of ``mask + 1`` slots (a power of two, at most
+    2^32): bits 32 and up of the key times the golden ratio (Fibonacci hashing)."""
+    return np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(32)) & mask
+
+@nb.njit(inline="always")
+def voxel_at(cx, cy, cz, hkeys, hids):
+    """Voxel id (or -1) of the voxel with integer corner (cx, cy, cz), through the open-addressed
+    voxel table (``hkeys``: packed keys, -1 = empty slot; linear probing)."""
+    ix, iy, iz = np.int64(cx) + _OFF, np.int64(cy) + _OFF, np.int64(cz) + _OFF
+    if ix < 0 or iy < 0 or iz < 0 or ix > _MASK or iy > _MASK or iz > _MASK:
         return -1
-    return grid[ix, iy, iz]
+    key = (iz << (2 * _BITS)) | (iy << _BITS) | ix
+    mask = hkeys.shape[0] - 1
+    s = slot_of(key, mask)
+    while True:
+        k = hkeys[s]
+        if k == key:
+            return hids[s]
+        if k < 0:
+            return -1
+        s = (s + 1) & mask
+
+@nb.njit(cache=True)
+def build_table(keys, hkeys, hids):
+    """Insert packed ``keys`` (unique) with ids 0..n-1 into the empty table ``hkeys`` / ``hids``
+    (power-of-two length, more slots than keys)."""
+    mask = hkeys.shape[0] - 1
+    for i in range(keys.shape[0]):
+        s = slot_of(keys[i], mask)
+        while hkeys[s] >= 0:
+            s = (s + 1) & mask
+        hkeys[s] = keys[i]
+        hids[s] = i
 
 @nb.njit(inline="always")
 def interpolate(vid, ux, uy, uz, vv, priors):
@@ -27,23 +62,23 @@ def interpolate(vid, ux, uy, uz, vv, priors):
     return s
 
 @nb.njit(inline="always")
-def trilinear(px, py, pz, grid, g0, vv, priors):
-    """(voxel id or -1, trilinear prior) at a point in voxel units, through the dense id grid."""
+def trilinear(px, py, pz, hkeys, hids, vv, priors):
+    """(voxel id or -1, trilinear prior) at a point in voxel units, through the voxel table."""
     fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
-    vid = voxel_at(fx, fy, fz, grid, g0)
+    vid = voxel_at(fx, fy, fz, hkeys, hids)
     if vid < 0:
         return -1, 0.0
     return vid, interpolate(vid, px - fx, py - fy, pz - fz, vv, priors)
 
 @nb.njit(inline="always")
-def face(o, dirs, r, t_in, s_in, t_out, grid, g0, vs, vv, priors):
+def face(o, dirs, r, t_in, s_in, t_out, hkeys, hids, vs, vv, priors):
     """Bisect between an allocated sample (t_in, prior s_in) and an unallocated one (t_out):
     the allocated point nearest the region's face and its prior (t_in, s_in if none is nearer)."""
     a, b = t_in, t_out
     for _ in range(8):
         mid = 0.5 * (a + b)
         v_mid, s_mid = trilinear((o[0] + dirs[r, 0] * mid) / vs, (o[1] + dirs[r, 1] * mid) / vs,
-                                 (o[2] + dirs[r, 2] * mid) / vs, grid, g0, vv, priors)
+                                 (o[2] + dirs[r, 2] * mid) / vs, hkeys, hids, vv, priors)
         if v_mid < 0:
             b = mid
         else:
@@ -51,10 +86,10 @@ def face(o, dirs, r, t_in, s_in, t_out, grid, g0, vs, vv, priors):
     return t_in, s_in
 
 @nb.njit(parallel=True, fastmath=False, cache=True)
-def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
-    nx, ny, nz = grid.shape
-    lo = (g0[0] * vs, g0[1] * vs, g0[2] * vs)
-    hi = ((g0[0] + nx) * vs, (g0[1] + ny) * vs, (g0[2] + nz) * vs)
+def march(o, dirs, nears, far, step, hkeys, hids, box_lo, box_hi, vs, vv, priors, exit_tol, out):
+    # box_lo / box_hi: integer corners of the allocated voxels' bounding box (hi exclusive)
+    lo = (box_lo[0] * vs, box_lo[1] * vs, box_lo[2] * vs)
+    hi = (box_hi[0] * vs, box_hi[1] * vs, box_hi[2] * vs)
     for r in nb.prange(dirs.shape[0]):
         out[r] = -1.0
         t0, t1 = nears[r], far
@@ -75,12 +110,12 @@ def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
         t = t0
         while t <= t1:
             vid, s = trilinear((o[0] + dirs[r, 0] * t) / vs, (o[1] + dirs[r, 1] * t) / vs,
-                               (o[2] + dirs[r, 2] * t) / vs, grid, g0, vv, priors)
+                               (o[2] + dirs[r, 2] * t) / vs, hkeys, hids, vv, priors)
             if vid < 0:
                 if prev > 0.0:
                     # leaving the allocated region while the prior is still positive: find the
                     # exit point (bisection); the surface may lie in the last sliver before it
-                    a_, s_in = face(o, dirs, r, prev_t, prev, t, grid, g0, vs, vv, priors)
+                    a_, s_in = face(o, dirs, r, prev_t, prev, t, hkeys, hids, vs, vv, priors)
                     if s_in <= 0.0:
                         out[r] = prev_t + (a_ - prev_t) * prev / (prev - s_in)
                         break
@@ -94,7 +129,7 @@ def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
             if prev != prev and t > t0:
                 # just entered the allocated region: find the entry point (bisection) and use
                 # the prior there, so a surface just inside the region's face is not stepped over
-                prev_t, prev = face(o, dirs, r, t, s, t - step, grid, g0, vs, vv, priors)
+                prev_t, prev = face(o, dirs, r, t, s, t - step, hkeys, hids, vs, vv, priors)
                 if prev_t < t and -exit_tol < prev <= 0.0:
                     # entering just behind the surface: it lies at the region's front face
                     out[r] = prev_t
@@ -107,13 +142,13 @@ def march(o, dirs, nears, far, step, grid, g0, vs, vv, priors, exit_tol, out):
     return out
 
 @nb.njit(parallel=True, cache=True)
-def locate_prior(pts, grid, g0, vs, vv, priors, eps, sdf, vox):
+def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
     """Voxel id (-1 outside) and trilinear prior of points (metres) like ``VoxelMap.locate``: a point
     within ``eps`` voxels of a face of an unallocated voxel belongs to the allocated one across it
     (priors are shared at vertices, so the value is the same from either side)."""
     for i in nb.prange(pts.shape[0]):
         px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
-        v, s = trilinear(px, py, pz, grid, g0, vv, priors)
+        v, s = trilinear(px, py, pz, hkeys, hids, vv, priors)
         if v < 0:
             fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
             ax, ay, az = round(px), round(py), round(pz)
@@ -126,7 +161,7 @@ def locate_prior(pts, grid, g0, vs, vv, priors, eps, sdf, vox):
                 cx = (ax - 1 if fx >= ax else ax) if bx else fx
                 cy = (ay - 1 if fy >= ay else ay) if by else fy
                 cz = (az - 1 if fz >= az else az) if bz else fz
-                v = voxel_at(cx, cy, cz, grid, g0)
+                v = voxel_at(cx, cy, cz, hkeys, hids)
                 if v >= 0:
                     s = interpolate(v, min(max(px - cx, 0.0), 1.0), min(max(py - cy, 0.0), 1.0),
                                     min(max(pz - cz, 0.0), 1.0), vv, priors)

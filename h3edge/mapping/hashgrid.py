@@ -1,11 +1,15 @@
 """Multiresolution hash encoding (instant-NGP math) with sparse, row-wise optimisation.
 
-Math (as tiny-cuda-nn computes it): world points are normalised per axis to the map bound,
-x in [0, 1]^3. Level l has ``scale_l = base_resolution * per_level_scale**l - 1`` and grid
-position ``p = x * scale_l + 0.5``; the 8 corners of the cell containing p are looked up and
-trilinearly interpolated. A level whose grid ((ceil(scale_l) + 2)^3 vertices) fits in the table
-is indexed densely, otherwise by the spatial hash ``(v_x * pi_1) XOR (v_y * pi_2) XOR
-(v_z * pi_3) mod T`` (pi = 1, 2654435761, 805459861). Each level owns T rows of F features.
+Math (as tiny-cuda-nn computes it): world points are normalised per axis to a reference cube
+(``bound``: it sets the scale and where the dense levels lie, not a limit), x = (p - lo) / size,
+so x in [0, 1]^3 inside the cube and anywhere outside it: the encoding covers all of space.
+Level l has ``scale_l = base_resolution * per_level_scale**l - 1`` and grid position
+``p = x * scale_l + 0.5``; the 8 corners of the cell containing p are looked up and trilinearly
+interpolated. A level whose grid over the cube ((ceil(scale_l) + 2)^3 vertices) fits in the
+table is indexed densely inside the cube, and everywhere else (and at every finer level) by the
+spatial hash ``(v_x * pi_1) XOR (v_y * pi_2) XOR (v_z * pi_3) mod T`` (pi = 1, 2654435761,
+805459861). Each level owns T rows of F features; a larger mapped area shares the same rows
+(more collisions), which is the capacity trade-off of docs/map_extent.md.
 
 One table can be read through several hash functions (H3-Mapping Sec. III-B: one per space-warp
 type): function i hashes ``XOR_k (v_k * pi_ik + delta_ik) mod T`` with its own primes and
@@ -84,7 +88,8 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction 
     side = dense[None, :, None]
     dense_idx = v[..., 0] + side * (v[..., 1] + side * v[..., 2])
     hashed = (v[..., 0] * primes[0] + d[0]) ^ (v[..., 1] * primes[1] + d[1]) ^ (v[..., 2] * primes[2] + d[2])
-    idx = torch.where(side > 0, dense_idx, hashed) & (T - 1)
+    in_dense = (side > 0) & ((v >= 0) & (v < side[..., None])).all(-1)
+    idx = torch.where(in_dense, dense_idx, hashed) & (T - 1)
     idx = idx + torch.arange(spec.levels, device=dev)[None, :, None] * T
     return idx, w
 
@@ -146,7 +151,8 @@ class _NumbaEncode(torch.autograd.Function):
 
 
 class HashGrid(torch.nn.Module):
-    """Hash-encoded feature field over an axis-aligned bound; ``forward(x_world) -> (N, L*F)``.
+    """Hash-encoded feature field over all of space, scaled to a reference cube ``bound``;
+    ``forward(x_world) -> (N, L*F)``.
 
     ``hash_functions``: the ways the one table can be indexed (``forward(..., fn=i)``); the default
     is the single instant-NGP hash."""
@@ -191,10 +197,11 @@ class HashGrid(torch.nn.Module):
         return self._kern
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
-        return ((x - self.bound_min) / self.bound_size).clamp(0.0, 1.0)
+        """Coordinates relative to the reference cube ([0, 1]^3 inside it; not clamped)."""
+        return (x - self.bound_min) / self.bound_size
 
     def forward(self, x: torch.Tensor, fn: int = 0, normalised: bool = False) -> torch.Tensor:
-        """Features of world points ``x`` (clamped to the bound), or of ``normalised`` coordinates
+        """Features of world points ``x`` (anywhere), or of ``normalised`` coordinates
         taken as they are (warped spaces may leave [0, 1]^3; hashing does not care), through hash
         function ``fn``."""
         xn = x.to(torch.float32).contiguous() if normalised else self.normalise(x.to(torch.float32)).contiguous()

@@ -53,7 +53,12 @@ class MapperConfig:
     device: str = "auto"  # auto (CUDA when available) | cpu | cuda
     iterations: int = 2  # optimisation steps per frame (paper)
     rays_per_iteration: int = 8192  # paper
-    extent: float = 12.8  # m, side of the cubic map bound, centred on the first camera position
+    # m, side of the hash grids' reference cube, centred on the first camera: it sets the grids'
+    # cell sizes and where their coarse levels are dense; the map itself extends anywhere
+    extent: float = 12.8
+    # m, farthest camera position from the world origin that is mapped (float32 coordinates keep
+    # sub-millimetre precision within it; a pose beyond is refused as bad_pose)
+    max_position: float = 1000.0
     min_depth: float = 0.01  # m, valid depth range (authors: (0.01, 10))
     max_depth: float = 10.0
     min_valid_fraction: float = 0.01  # frames with less valid depth are dropped
@@ -164,7 +169,6 @@ class Mapper:
         self.frames_mapped = 0
         self.dropped: dict[str, int] = {}
         self.last_timestamp: float | None = None
-        self.out_of_bound_points = 0
         self.iterations = {"frame": 0, "between_frames": 0}  # optimisation steps, by when they ran
         self._rays_cache: dict[Intrinsics, np.ndarray] = {}
         # called on the mapping thread after every training step: where a service hands out
@@ -207,6 +211,10 @@ class Mapper:
         err = rigid_error(pose)
         if err:
             return "bad_pose", f"pose: {err}"
+        dist = float(np.linalg.norm(pose[:3, 3]))
+        if dist > self.cfg.max_position:
+            return "bad_pose", (f"camera {dist:.4g} m from the world origin, beyond mapper.max_position "
+                                f"({self.cfg.max_position:g} m)")
         if not np.isfinite(frame.timestamp):
             return "bad_timestamp", "timestamp is not finite"
         if self.last_timestamp is not None and frame.timestamp <= self.last_timestamp:
@@ -234,16 +242,7 @@ class Mapper:
             return self._drop(frame, code, reason)
         depth = self.clean_depth(frame.depth)
         pose = np.asarray(frame.pose, np.float64)
-        if self.field is None:
-            c = pose[:3, 3]
-            self.bound = np.stack([c - self.cfg.extent / 2, c + self.cfg.extent / 2])
-            self._build_field()
         pts = backproject(depth, frame.intrinsics, pose)
-        outside = ~np.all((pts >= self.bound[0]) & (pts <= self.bound[1]), axis=-1) & (depth > 0)
-        if outside.any():
-            self.out_of_bound_points += int(outside.sum())
-            depth = np.where(outside, np.float32(0), depth)
-            pts[outside] = np.nan
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         if len(valid) < self.cfg.min_valid_fraction * depth.size:
             return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
@@ -254,6 +253,10 @@ class Mapper:
             new = self.voxels.allocate(depth, frame.intrinsics, pose, points=pts)
         if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
             return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
+        if self.field is None:  # the first frame that maps places the grids' reference cube
+            c = pose[:3, 3]
+            self.bound = np.stack([c - self.cfg.extent / 2, c + self.cfg.extent / 2])
+            self._build_field()
 
         grad = None
         tex = self.settings.texture
@@ -364,7 +367,7 @@ class Mapper:
                 "voxels_refused": self.voxels.refused, "vertices": len(self.voxels.vertex_keys),
                 "keyframes": len(self.keyframes.keyframes), "keyframes_pruned": self.keyframes.pruned,
                 "keyframes_evicted": self.keyframes.evicted,
-                "out_of_bound_points": self.out_of_bound_points, "device": str(self.device),
+                "device": str(self.device),
                 "texture_classes": self.patterns.counts(len(self.voxels)) if self.settings.texture.quasi_heterogeneous else {},
                 "memory_bytes": {"keyframes": kf_bytes, "hash_grids_with_adam": grids,
                                  "priors": len(self.voxels.vertex_keys) * 4 * 3,

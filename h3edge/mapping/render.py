@@ -8,7 +8,8 @@ Two stages per ray, both restricted to allocated leaf voxels:
    within ``exit_tolerance``, is a hit at the face); likewise where it leaves the region with the
    prior still positive (the exit point's prior decides, and a prior just short of zero is
    extrapolated to its crossing); a fused numba kernel over a
-   dense voxel-id grid of the map's bounding box, parallel over rays;
+   hash table of the voxel ids (memory proportional to the voxels, wherever they are), parallel
+   over rays;
 2. fine: ``fine_samples`` samples ``fine_step`` apart centred on that crossing, full SDF (prior
    + residual) and the paper's volume rendering weights sigma(s/beta) sigma(-s/beta) give the
    depth; colour is the colour field at the rendered surface point. With the paper's kernel
@@ -64,28 +65,27 @@ def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderCon
     """Ray parameter (= z-depth for camera-z-normalised ``dirs``) of each ray's first + to -
     crossing of the prior SDF inside allocated voxels, searched from ``near`` (per ray; default
     ``cfg.near``); -1 where there is none."""
-    g0, grid = voxels.dense_index()
     out = np.empty(len(dirs), np.float64)
     if len(voxels) == 0:
         out[:] = -1
         return out
     priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
     nears = np.full(len(dirs), cfg.near) if near is None else np.ascontiguousarray(near, np.float64)
+    tab = voxels.table()
     return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), nears,
-                              cfg.far, cfg.coarse_step, grid, g0.astype(np.int64), voxels.cfg.voxel_size,
-                              voxels.voxel_vertices, priors, cfg.exit_tolerance, out)
+                              cfg.far, cfg.coarse_step, tab.hkeys, tab.hids, tab.box_lo, tab.box_hi,
+                              voxels.cfg.voxel_size, voxels.voxel_vertices, priors, cfg.exit_tolerance, out)
 
 
 class PriorLookup:
-    """No-grad prior SDF (truncation units) and voxel ids at points through a dense voxel-id grid:
+    """No-grad prior SDF (truncation units) and voxel ids at points through the voxel hash table:
     constant time per point, one fused parallel pass, the same answer as :meth:`VoxelMap.locate`
     + :meth:`VoxelMap.coarse_sdf` (points on a face of the allocated region included), which
     training uses with its searchsorted lookups."""
 
     def __init__(self, voxels, eps: float = 1e-5):
         self.eps = eps
-        self.g0, self.grid = voxels.dense_index()
-        self.g0 = self.g0.astype(np.int64)
+        self.table = voxels.table()
         self.vs = voxels.cfg.voxel_size
         self.vv = voxels.voxel_vertices
         self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
@@ -98,7 +98,7 @@ class PriorLookup:
         sdf = np.empty(len(pts), np.float64)
         vox = np.empty(len(pts), np.int64)
         if len(self.vv):
-            _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.grid, self.g0, self.vs, self.vv,
+            _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.table.hkeys, self.table.hids, self.vs, self.vv,
                                self.priors if values is None else values, self.eps, sdf, vox)
         else:
             sdf[:], vox[:] = 0, -1

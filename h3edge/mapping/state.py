@@ -51,7 +51,7 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
         raise RuntimeError("nothing mapped yet")
     arrays: dict[str, np.ndarray] = {}
     meta: dict = {"state_version": STATE_VERSION, "frames_mapped": m.frames_mapped, "dropped": dict(m.dropped),
-                  "last_timestamp": m.last_timestamp, "out_of_bound_points": m.out_of_bound_points,
+                  "last_timestamp": m.last_timestamp,
                   "iterations": dict(m.iterations),
                   "bound": m.bound.tolist(), "voxels_refused": m.voxels.refused,
                   "rng": m.rng.bit_generator.state, "grid_steps": {}, "prior_steps": m.prior_opt.steps,
@@ -159,6 +159,5 @@ def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarr
     m.dropped = dict(meta["dropped"])
     m.last_timestamp = meta["last_timestamp"]
     m.iterations.update({k: int(v) for k, v in meta.get("iterations", {}).items() if k in m.iterations})
-    m.out_of_bound_points = int(meta["out_of_bound_points"])
     m.rng.bit_generator.state = meta["rng"]
     return m

@@ -263,16 +263,32 @@ class VoxelMap:
         w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
         return (self.priors[vid] * w).sum(1) * inside, inside
 
-    def dense_index(self) -> tuple[np.ndarray, np.ndarray]:
-        """(origin ijk (3,), int32 grid of voxel ids over the map's bounding box, -1 = empty):
-        constant-time lookups for ray marching (size = the map's bounding box in voxels)."""
+    def table(self) -> "VoxelTable":
+        """Open-addressed hash table of the voxel ids (constant-time lookups for ray marching, in
+        memory proportional to the voxel count wherever the voxels are) and their bounding box."""
+        from h3edge.mapping import _march_kernels as k
+
+        n = len(self.voxel_keys)
+        cap = 1 << max(4, int(np.ceil(np.log2(2 * max(n, 1)))))  # load factor <= 1/2
+        hkeys = np.full(cap, -1, np.int64)
+        hids = np.full(cap, -1, np.int32)
+        if n == 0:
+            return VoxelTable(hkeys, hids, np.zeros(3, np.int64), np.zeros(3, np.int64))
+        k.build_table(np.ascontiguousarray(self.voxel_keys, np.int64), hkeys, hids)
         ijk = unpack(self.voxel_keys)
-        if len(ijk) == 0:
-            return np.zeros(3, np.int64), np.full((1, 1, 1), -1, np.int32)
-        o = ijk.min(0)
-        grid = np.full(tuple(ijk.max(0) - o + 1), -1, np.int32)
-        grid[tuple((ijk - o).T)] = np.arange(len(ijk), dtype=np.int32)
-        return o, grid
+        return VoxelTable(hkeys, hids, ijk.min(0).astype(np.int64), ijk.max(0).astype(np.int64) + 1)
+
+
+@dataclass(frozen=True)
+class VoxelTable:
+    """Voxel ids by integer coordinates for the numba kernels: ``hkeys`` (packed keys, -1 = empty
+    slot) and ``hids`` (voxel ids) of a power-of-two open-addressed table with linear probing,
+    and the integer bounding box ``[box_lo, box_hi)`` of the voxels."""
+
+    hkeys: np.ndarray
+    hids: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
 
 
 class PriorAdam:

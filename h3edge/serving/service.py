@@ -551,7 +551,7 @@ class MapService:
                 "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
                 "training": self.training_rate(),
                 "map": {k: s.get(k) for k in ("voxels", "voxels_refused", "vertices", "keyframes", "keyframes_pruned",
-                                              "keyframes_evicted", "out_of_bound_points", "texture_classes")},
+                                              "keyframes_evicted", "texture_classes")},
                 "memory": {"parts_bytes": s.get("memory_bytes", {}),
                            "total_bytes": int(sum(s.get("memory_bytes", {}).values())),
                            "budget_bytes": self.plan["budget"], "plan": self.plan},
