@@ -11,8 +11,10 @@ def test_every_profile_loads(path):
     assert prof.name == path.stem
     assert prof.eval.n_points > 0
     settings = prof.map_settings()
-    plan = memory_plan(settings, prof.service.memory_budget_mb, keyframe_bytes(settings))
-    assert plan["fits"], plan  # the budget holds the tables, the voxel cap, query scratch and >= 8 keyframes
+    px = prof.service.max_frame_pixels
+    plan = memory_plan(settings, prof.service.memory_budget_mb, keyframe_bytes(settings, px), px,
+                       prof.service.ingest_queue)
+    assert plan["fits"], plan  # the budget holds the tables, the voxel cap, query scratch, the largest frame's buffers and >= 8 keyframes
     assert prof.inference.decoders in ("onnx", "torch")
 
 

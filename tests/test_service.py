@@ -216,14 +216,16 @@ def test_kill_and_resume(served, tmp_path):
         with open_session(svc2.client_config()) as s2:
             st = wait_for_service(s2, KEYS)
             assert st["resumed_from"]["frames_mapped"] == info["frames_mapped"]
-            assert st["frames"]["mapped"] == info["frames_mapped"]
+            assert st["map"]["frames_mapped"] == info["frames_mapped"]
+            assert st["frames"]["mapped"] == 0  # this process's frames: none yet
             assert st["map"]["voxels"] == before["map"]["voxels"]
             mesh = query(s2, KEYS.mesh, {"resolution": 2}, timeout=120)
             assert len(mesh) > 1000
             # it goes on mapping: newer frames (host timestamps after the checkpoint's) are mapped
             publish_sequence(s2, seq, KEYS, rate=4.0, frames=6, embed_pose=True)
             st2 = wait_drained(s2, KEYS, timeout=120)
-            assert st2["frames"]["mapped"] > info["frames_mapped"]
+            assert st2["map"]["frames_mapped"] > info["frames_mapped"] and st2["frames"]["mapped"] > 0
+            assert st2["frames"]["mapped"] + st2["frames"]["dropped"] == st2["frames"]["received"]
         assert svc2.stop() == 0
     finally:
         if svc2.proc.poll() is None:

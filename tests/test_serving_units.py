@@ -6,6 +6,7 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -169,8 +170,12 @@ def test_memory_plan_sets_keyframe_cap():
     big, small = memory_plan(s, 4096, kb), memory_plan(s, 300, kb)
     assert big["max_keyframes"] > small["max_keyframes"] >= 8
     assert big["hash_tables"] == small["hash_tables"] > 0
-    parts = ("hash_tables", "voxels_at_cap", "query_snapshot", "query_working_set", "checkpoint_capture", "keyframes")
+    parts = ("hash_tables", "voxels_at_cap", "query_snapshot", "query_working_set", "checkpoint_capture",
+             "frame_buffers", "keyframes")
     assert sum(big[k] for k in parts) == big["budget"]
+    # the largest admitted frame's buffers are planned for: a larger cap leaves fewer keyframes
+    hd, uhd = memory_plan(s, 4096, kb, 1920 * 1080), memory_plan(s, 4096, kb, 4096 * 3072)
+    assert uhd["frame_buffers"] > 6 * hd["frame_buffers"] > 0 and uhd["max_keyframes"] < hd["max_keyframes"]
 
 
 def test_deploy_files():
@@ -432,6 +437,47 @@ def test_overloaded_queries_get_a_busy_error_reply():
     refused = [q for q in queries if q.errors]
     assert len(refused) == 3 and all(q.closed and "busy" in q.errors[0] and "retry" in q.errors[0] for q in refused)
     assert server._heavy.qsize() == server._heavy.maxsize
+
+
+def test_heavy_queries_past_their_deadline_get_an_error_reply():
+    """A heavy query that waited in the queue past the deadline is answered with a deadline
+    error, not worked on after its client gave up (issue 16, item 5)."""
+    import time as time_
+
+    from h3edge.serving.transport import ZenohServer
+
+    class FakeQuery:
+        key_expr = "h3edge/m/mesh"
+
+        def __init__(self):
+            self.errors, self.replies = [], []
+
+        def reply_err(self, text):
+            self.errors.append(text)
+
+        def reply(self, key, payload, encoding=None):
+            self.replies.append(payload)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    server = ZenohServer(service=None, session=None, map_id="m", heavy_deadline_s=0.2)
+    calls = []
+    late, fresh = FakeQuery(), FakeQuery()
+    server._heavy.put((late, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic() - 1.0))
+    server._heavy.put((fresh, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic()))
+    worker = threading.Thread(target=server._work, args=(server._heavy,), daemon=True)
+    worker.start()
+    end = time_.monotonic() + 5
+    while not fresh.replies and time_.monotonic() < end:
+        time_.sleep(0.01)
+    server._closing.set()
+    worker.join(2)
+    assert late.errors and "deadline" in late.errors[0] and "retry" in late.errors[0] and not late.replies
+    assert fresh.replies == [b"mesh"] and calls == [fresh]
 
 
 def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):

@@ -58,6 +58,10 @@ class ProtocolError(ValueError):
     """A message that does not follow the protocol; the text says which part and why."""
 
 
+class FrameTooLarge(ProtocolError):
+    """A well-formed frame over the receiver's pixel limit (refused before any image is decoded)."""
+
+
 @dataclass
 class FrameMessage:
     timestamp_ns: int
@@ -302,7 +306,10 @@ def _decode_depth(enc: str, data: bytes, w: int, h: int, scale: float) -> np.nda
     return raw.astype(np.float32) / np.float32(scale)
 
 
-def decode_frame(data: bytes) -> FrameMessage:
+def decode_frame(data: bytes, max_pixels: int = MAX_PIXELS) -> FrameMessage:
+    """Parse and decode one frame message. Sizes are checked before any image is decoded: the
+    header's width x height against ``max_pixels`` (:class:`FrameTooLarge`), and each encoded
+    image's own dimensions (PNG IHDR / JPEG SOF) against the header's."""
     data = bytes(data)
     if len(data) < 8 or data[:4] != FRAME_MAGIC:
         raise ProtocolError("frame message does not start with the H3FR magic")
@@ -319,8 +326,8 @@ def decode_frame(data: bytes) -> FrameMessage:
     ts = _int(d, "timestamp_ns", what, 0, MAX_TIMESTAMP_NS)
     fid = _int(d, "frame_id", what, 0)
     w, h = _int(d, "width", what, 1, MAX_SIDE), _int(d, "height", what, 1, MAX_SIDE)
-    if w * h > MAX_PIXELS:
-        raise ProtocolError(f"{what}: {w}x{h} exceeds the {MAX_PIXELS}-pixel limit")
+    if w * h > min(max_pixels, MAX_PIXELS):
+        raise FrameTooLarge(f"{what}: {w}x{h} exceeds the {min(max_pixels, MAX_PIXELS)}-pixel limit")
     intr_d = d.get("intrinsics")
     _check_keys(intr_d, {"fx", "fy", "cx", "cy"}, f"{what}.intrinsics")
     try:

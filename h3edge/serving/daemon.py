@@ -39,7 +39,7 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
         signal.signal(signal.SIGINT, on_signal)
     log.info("warm-up (loading compiled kernels) took %.1f s", service.warm_up())
     session = open_session(zconf)
-    server = ZenohServer(service, session, cfg.map_id)
+    server = ZenohServer(service, session, cfg.map_id, cfg.query_deadline_s)
     rc = 0
     try:
         server.start()

@@ -40,10 +40,10 @@ import numpy as np
 
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
-from h3edge.io.protocol import (MAX_SIDE, FrameMessage, ProtocolError, check_map_id, decode_frame, decode_pose,
+from h3edge.io.protocol import (MAX_SIDE, FrameMessage, FrameTooLarge, ProtocolError, check_map_id, decode_frame, decode_pose,
                                 encode_frame, pose_from_json)
 from h3edge.io.sequence import Frame
-from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.mapper import RAY_TABLES, Mapper, MapSettings
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.snapshot import MapView
@@ -70,17 +70,34 @@ class ServiceConfig:
     # future_pose): one such stamp would otherwise make every later valid frame stale, for good
     max_future_s: float = 3600.0
     memory_budget_mb: int = 2048  # the map's memory (tables, voxels, keyframes, query snapshots)
+    # frames with more pixels are refused (frame_too_large) before decoding; the memory plan holds
+    # the decode and per-frame buffers of one frame this size
+    max_frame_pixels: int = 1920 * 1080
     snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
     max_render_pixels: int = 1280 * 960  # render requests above this are refused
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
-    query_timeout_s: float = 60.0
+    query_timeout_s: float = 60.0  # longest a query waits for the mapper thread's map copy
+    # a heavy query (mesh, render, save) still queued after this long gets a deadline error reply
+    query_deadline_s: float = 30.0
     save_min_interval_s: float = 10.0  # save requests closer together than this are refused
     timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
 
 
 # ------------------------------------------------------------------------------ memory plan
-def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int) -> dict:
-    """Split the byte budget: fixed parts first, keyframes get what is left (at least 8)."""
+# Peak bytes per pixel of decoding and mapping one frame beyond the ray table (decoded images,
+# cleaned depth, back-projected points, texture-pattern images, keyframe payload), measured with
+# python -m h3edge.bench.frame_memory: +253 MB at 1920x1080, +1638 MB at 4096x3072 (128-136 B/px,
+# docs/bench_frame_memory.md), rounded up.
+FRAME_SCRATCH_BYTES_PER_PIXEL = 144
+RAY_TABLE_BYTES_PER_PIXEL = 12  # float32 (x, y, z) per pixel, RAY_TABLES of them kept
+ENCODED_BYTES_PER_PIXEL = 7  # the largest encodings: raw_rgb8 + raw_f32
+
+
+def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, frame_pixels: int = 1920 * 1080,
+                ingest_queue: int = 2) -> dict:
+    """Split the byte budget: fixed parts first, keyframes get what is left (at least 8).
+    ``frame_pixels``: the largest frame admitted (``max_frame_pixels``): its decode and mapping
+    scratch, the ray tables of a few cameras that size, and the queued encoded frames."""
     f = settings.field
     tables = 0
     for log2, levels, feats in ((f.geo_log2_table, f.geo_levels, f.geo_features),
@@ -93,15 +110,18 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int) -> d
     budget = int(budget_mb) << 20
     working = max(64 << 20, budget * 15 // 100)  # scratch of one mesh / render query (meshes above it are refused)
     checkpoint = tables * 3 // 4 + voxels // 2  # the state captured for the checkpoint writer
-    left = budget - tables - voxels - snapshot - working - checkpoint
+    frames = frame_pixels * (FRAME_SCRATCH_BYTES_PER_PIXEL + RAY_TABLES * RAY_TABLE_BYTES_PER_PIXEL
+                             + (ingest_queue + 1) * ENCODED_BYTES_PER_PIXEL)
+    left = budget - tables - voxels - snapshot - working - checkpoint - frames
     cap = max(8, left // max(1, keyframe_bytes))
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
-            "query_working_set": working, "checkpoint_capture": checkpoint, "keyframes": max(0, left),
+            "query_working_set": working, "checkpoint_capture": checkpoint, "frame_buffers": frames,
+            "keyframes": max(0, left),
             "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap), "fits": left >= 8 * keyframe_bytes}
 
 
-def keyframe_bytes(settings: MapSettings, width: int = 640, height: int = 480) -> int:
-    n = settings.keyframes.stored_pixels or width * height
+def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
+    n = settings.keyframes.stored_pixels or frame_pixels
     return n * (4 + 3 + 4) + 4096  # pixel index, RGB, depth; voxel ids and scores
 
 
@@ -117,7 +137,8 @@ class MapService:
                  resume: bool = False, inference: InferenceConfig = InferenceConfig()):
         self.settings, self.cfg, self.profile_name = settings, cfg, profile_name
         self.inference = inference
-        self.plan = memory_plan(settings, cfg.memory_budget_mb, keyframe_bytes(settings))
+        self.plan = memory_plan(settings, cfg.memory_budget_mb, keyframe_bytes(settings, cfg.max_frame_pixels),
+                                cfg.max_frame_pixels, cfg.ingest_queue)
         if not self.plan["fits"]:
             log.warning("memory budget %d MB leaves little for keyframes: %s", cfg.memory_budget_mb, self.plan)
         kf = dataclasses.replace(settings.keyframes, max_keyframes=min(
@@ -172,6 +193,10 @@ class MapService:
         self.heartbeat = time.monotonic()
         self.started = time.time()
         self._stats = self._collect_stats()
+        # the checkpoint's counts: status reports this process's frames (received, mapped, dropped
+        # since start, so mapped + dropped never exceeds received) beside the map's total
+        self._mapped_at_start = self.mapper.frames_mapped
+        self._dropped_at_start = dict(self.mapper.dropped)
 
     # ---------------------------------------------------------------- lifecycle
     def _resume(self) -> None:
@@ -375,7 +400,11 @@ class MapService:
         self.mapper.timings.add("queue_wait", time.monotonic() - item.received)
         t0 = time.perf_counter()
         try:
-            msg = decode_frame(item.data)
+            msg = decode_frame(item.data, self.cfg.max_frame_pixels)
+        except FrameTooLarge as e:
+            self._drops["frame_too_large"] += 1
+            self._error("frame_too_large", str(e))
+            return
         except ProtocolError as e:
             self._drops["malformed"] += 1
             self._error("malformed", str(e))
@@ -530,7 +559,9 @@ class MapService:
         s = self._stats
         dropped = dict(self._drops)
         for k, v in s.get("dropped", {}).items():
-            dropped[k] = dropped.get(k, 0) + v
+            v -= self._dropped_at_start.get(k, 0)
+            if v:
+                dropped[k] = dropped.get(k, 0) + v
         frames_dropped = sum(dropped.values())  # frames only: mapped + dropped never exceeds received
         for k, v in self._pose_drops.items():
             dropped[k] = dropped.get(k, 0) + v
@@ -543,15 +574,16 @@ class MapService:
         return {"map_id": self.cfg.map_id, "profile": self.profile_name, "device": str(self.mapper.device),
                 "inference": self.inference_info(),
                 "uptime_s": round(time.time() - self.started, 1),
-                "frames": {"received": self._counts["frames_received"], "mapped": s.get("frames_mapped", 0),
+                "frames": {"received": self._counts["frames_received"],
+                           "mapped": s.get("frames_mapped", 0) - self._mapped_at_start,
                            "dropped": frames_dropped, "queued": len(self._queue)},
                 "dropped": dropped, "poses": {"received": self._counts["poses_received"], "buffered": len(self.poses),
                                               "dropped": sum(self._pose_drops.values())},
                 "rates_hz": {"received": rate(self._recent_received), "mapped": rate(self._recent_mapped)},
                 "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
                 "training": self.training_rate(),
-                "map": {k: s.get(k) for k in ("voxels", "voxels_refused", "vertices", "keyframes", "keyframes_pruned",
-                                              "keyframes_evicted", "texture_classes")},
+                "map": {k: s.get(k) for k in ("frames_mapped", "voxels", "voxels_refused", "vertices", "keyframes",
+                                              "keyframes_pruned", "keyframes_evicted", "texture_classes")},
                 "memory": {"parts_bytes": s.get("memory_bytes", {}),
                            "total_bytes": int(sum(s.get("memory_bytes", {}).values())),
                            "budget_bytes": self.plan["budget"], "plan": self.plan},

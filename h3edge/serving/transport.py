@@ -75,8 +75,12 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
 class ZenohServer:
     """Wires a :class:`h3edge.serving.service.MapService` to zenoh keys."""
 
-    def __init__(self, service, session: zenoh.Session, map_id: str):
+    def __init__(self, service, session: zenoh.Session, map_id: str, heavy_deadline_s: float = 30.0):
+        """``heavy_deadline_s``: a mesh, render or save query still waiting in the queue after this
+        long is answered with a deadline error (its client has likely given up; the work would be
+        wasted and delay the queries behind it)."""
         self.service, self.session, self.keys = service, session, Keys.for_map(map_id)
+        self.heavy_deadline_s = heavy_deadline_s
         self._fast: queue.Queue = queue.Queue(maxsize=64)
         self._heavy: queue.Queue = queue.Queue(maxsize=16)
         self._entities: list = []
@@ -104,7 +108,7 @@ class ZenohServer:
     def _enqueue(self, q: queue.Queue, fn: Callable) -> Callable:
         def cb(query) -> None:
             try:
-                q.put_nowait((query, fn))
+                q.put_nowait((query, fn, time.monotonic()))
             except queue.Full:  # refused with an error reply saying so, never an empty answer
                 log.warning("query queue full: refused a query on %s", query.key_expr)
                 with query:
@@ -115,10 +119,16 @@ class ZenohServer:
     def _work(self, q: queue.Queue) -> None:
         while not self._closing.is_set():
             try:
-                query, fn = q.get(timeout=0.2)
+                query, fn, queued_at = q.get(timeout=0.2)
             except queue.Empty:
                 continue
             with query:
+                waited = time.monotonic() - queued_at
+                if q is self._heavy and waited > self.heavy_deadline_s:
+                    log.warning("query on %s waited %.1f s: answered past its deadline", query.key_expr, waited)
+                    query.reply_err(f"busy: deadline exceeded, the query waited {waited:.1f} s in the queue "
+                                    f"(deadline {self.heavy_deadline_s:g} s); retry later")
+                    continue
                 try:
                     payload, encoding = fn(query)
                     query.reply(query.key_expr, payload, encoding=encoding)

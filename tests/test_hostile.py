@@ -1,0 +1,196 @@
+"""Hostile input against a real ``h3edge serve`` on loopback zenoh: for each case the bad message
+goes in, then good frames, and the good frames must map; where state persists, across a save,
+SIGTERM and ``--resume``. The rule under test (docs/protocol.md): no single message changes what
+later valid messages do, except by mapping valid data."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from h3edge.bench.frame_memory import frame_at, png_bomb, splice
+from h3edge.io.protocol import FrameMessage, PoseMessage, encode_frame, encode_pose
+from h3edge.io.replica import ReplicaSequence
+from h3edge.serving.demo import ServiceProcess, wait_drained
+from h3edge.serving.transport import Keys, RemoteError, open_session, query, wait_for_service
+
+PROFILE = Path(__file__).parent / "data" / "service-test.toml"
+KEYS = Keys.for_map("hostile")
+BIG_STAMP = (1 << 63) - 1
+
+
+class Robot:
+    """A client session that sends frames (tiny scene, host-time stamps) and reads status."""
+
+    def __init__(self, svc: ServiceProcess, seq):
+        self.session = open_session(svc.client_config())
+        wait_for_service(self.session, KEYS, timeout=120)
+        self.seq, self.i = seq, 0
+
+    def status(self) -> dict:
+        return json.loads(query(self.session, KEYS.status, timeout=10))
+
+    def put_frame(self, data: bytes) -> None:
+        self.session.put(KEYS.frame, data)
+
+    def put_pose(self, data: bytes) -> None:
+        self.session.put(KEYS.pose, data)
+
+    def good_frame(self, embed_pose: bool = True, ts_ns: int | None = None) -> tuple[bytes, int]:
+        f = self.seq[self.i % len(self.seq)]
+        self.i += 1
+        ts = ts_ns or time.time_ns()
+        return encode_frame(FrameMessage(ts, self.i, f.color, f.depth, f.intrinsics, f.pose if embed_pose else None)), ts
+
+    def settle(self, received: int) -> dict:
+        """Until ``received`` frames have arrived and each is mapped or dropped."""
+        end = time.monotonic() + 60
+        while self.status()["frames"]["received"] < received:
+            assert time.monotonic() < end, "frames did not arrive"
+            time.sleep(0.1)
+        return wait_drained(self.session, KEYS, timeout=120)
+
+    def good_frames_map(self, n: int = 2) -> dict:
+        before = self.status()
+        for _ in range(n):
+            self.put_frame(self.good_frame()[0])
+            time.sleep(0.4)
+        after = self.settle(before["frames"]["received"] + n)
+        assert after["frames"]["mapped"] == before["frames"]["mapped"] + n, (after["dropped"], after["last_error"])
+        assert after["frames"]["mapped"] + after["frames"]["dropped"] == after["frames"]["received"]
+        return after
+
+    def close(self) -> None:
+        self.session.close()
+
+
+@pytest.fixture(scope="module")
+def hostile(tiny_scene, tmp_path_factory):
+    state = tmp_path_factory.mktemp("hostile")
+    seq = ReplicaSequence(tiny_scene)
+    svc = ServiceProcess(PROFILE, state, "hostile", state / "service.log")
+    svc.wait_listening()
+    robot = Robot(svc, seq)
+    yield {"svc": svc, "robot": robot, "state": state, "seq": seq}
+    robot.close()
+    if svc.proc.poll() is None:
+        svc.stop()
+
+
+def _dropped(before: dict, after: dict, key: str, part: str = "dropped") -> int:
+    return after[part].get(key, 0) - before[part].get(key, 0)
+
+
+def test_an_absurd_first_pose_places_nothing(hostile):
+    """The service's first frame has a pose 1e9 m away: refused; the good frames after it map."""
+    robot = hostile["robot"]
+    f = robot.seq[0]
+    far = f.pose.copy()
+    far[:3, 3] += [1e9, 0, 0]
+    before = robot.status()
+    assert before["frames"]["mapped"] == 0
+    robot.put_frame(encode_frame(FrameMessage(time.time_ns(), 0, f.color, f.depth, f.intrinsics, far)))
+    after = robot.settle(before["frames"]["received"] + 1)
+    assert _dropped(before, after, "bad_pose") == 1
+    robot.good_frames_map(3)
+
+
+def test_a_frame_stamped_at_the_end_of_time_is_refused(hostile):
+    robot = hostile["robot"]
+    before = robot.status()
+    robot.put_frame(robot.good_frame(ts_ns=BIG_STAMP)[0])
+    after = robot.settle(before["frames"]["received"] + 1)
+    assert _dropped(before, after, "future_timestamp") == 1
+    robot.good_frames_map()
+
+
+def test_poses_stamped_at_the_end_of_time_or_huge_do_not_block_association(hostile):
+    robot = hostile["robot"]
+    before = robot.status()
+    f = robot.seq[2]
+    robot.put_pose(encode_pose(PoseMessage(BIG_STAMP, f.pose)))
+    robot.put_pose(b'{"v": 1, "timestamp_ns": 1' + b"0" * 400 + b', "t": [0, 0, 0], "q": [0, 0, 0, 1]}')
+    time.sleep(0.5)
+    mid = robot.status()
+    assert _dropped(before, mid, "future_pose") == 1 and _dropped(before, mid, "malformed_pose") == 1, mid["dropped"]
+    # frames without poses: their poses arrive on the pose key, around their stamps
+    for _ in range(2):
+        data, ts = robot.good_frame(embed_pose=False)
+        pose = robot.seq[(robot.i - 1) % len(robot.seq)].pose
+        robot.put_pose(encode_pose(PoseMessage(ts - 20_000_000, pose)))
+        robot.put_pose(encode_pose(PoseMessage(ts + 20_000_000, pose)))
+        robot.put_frame(data)
+        time.sleep(0.4)
+    after = robot.settle(mid["frames"]["received"] + 2)
+    assert after["frames"]["mapped"] == mid["frames"]["mapped"] + 2, (after["dropped"], after["last_error"])
+
+
+def test_image_bombs_and_oversized_frames_are_refused_before_decoding(hostile):
+    robot = hostile["robot"]
+    before = robot.status()
+    f = robot.seq[3]
+    bomb = png_bomb(8192, 8192)
+    robot.put_frame(splice(frame_at(f, 160, 120, time.time_ns(), "png"), "color", bomb))  # header says 160x120
+    time.sleep(0.3)
+    robot.put_frame(splice(frame_at(f, 160, 120, time.time_ns(), "png"), "color", bomb, 8192, 8192))
+    time.sleep(0.3)
+    after = robot.settle(before["frames"]["received"] + 2)
+    assert _dropped(before, after, "malformed") == 1 and _dropped(before, after, "frame_too_large") == 1
+    robot.good_frames_map()
+
+
+def test_a_flood_of_new_intrinsics_keeps_the_ray_tables_bounded(hostile):
+    robot = hostile["robot"]
+    before = robot.status()
+    f = robot.seq[4]
+    for k in range(8):
+        intr = type(f.intrinsics)(f.intrinsics.width, f.intrinsics.height, f.intrinsics.fx * (1 + 1e-4 * (k + 1)),
+                                  f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy)
+        robot.put_frame(encode_frame(FrameMessage(time.time_ns(), 100 + k, f.color, f.depth, intr, f.pose)))
+        time.sleep(0.4)
+    after = robot.settle(before["frames"]["received"] + 8)
+    table = f.intrinsics.width * f.intrinsics.height * 12
+    assert after["memory"]["parts_bytes"]["ray_tables"] <= 4 * table
+    robot.good_frames_map()
+
+
+def test_hostile_queries_get_error_replies_and_mapping_goes_on(hostile):
+    robot = hostile["robot"]
+    s = robot.session
+    for key, req in ((KEYS.mesh, {"resolution": "Infinity"}), (KEYS.mesh, {"resolution": 10 ** 6}),
+                     (KEYS.render, {"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 1228800, "height": 1}),
+                     (KEYS.render, {"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 64, "height": 48,
+                                    "extra": 1})):
+        with pytest.raises(RemoteError):
+            query(s, key, req, timeout=30)
+    # a wildcard query reaches save too: it is refused there, and writes no checkpoint
+    checkpoint = robot.status()["last_checkpoint"]
+    errors = [r.err.payload.to_bytes().decode() for r in s.get("h3edge/hostile/**", timeout=30) if r.err is not None]
+    assert any("exact key" in e for e in errors), errors
+    assert robot.status()["last_checkpoint"] == checkpoint
+    robot.good_frames_map()
+
+
+def test_nothing_poisoned_survives_a_restart(hostile):
+    """After every case above: save, SIGTERM, --resume, and good frames map on."""
+    robot, svc, state = hostile["robot"], hostile["svc"], hostile["state"]
+    mapped = robot.status()["map"]["frames_mapped"]
+    query(robot.session, KEYS.save, timeout=60)
+    robot.close()
+    assert svc.stop() == 0
+    svc2 = ServiceProcess(PROFILE, state, "hostile", state / "service2.log", resume=True)
+    try:
+        svc2.wait_listening()
+        robot2 = Robot(svc2, hostile["seq"])
+        robot2.i = robot.i
+        st = robot2.status()
+        assert st["map"]["frames_mapped"] == st["resumed_from"]["frames_mapped"] >= mapped, st
+        assert st["frames"]["mapped"] == st["frames"]["received"] == 0
+        robot2.good_frames_map(3)
+        robot2.close()
+    finally:
+        if svc2.proc.poll() is None:
+            svc2.stop()
