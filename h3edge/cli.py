@@ -94,9 +94,9 @@ def _print_run(run: dict, out: Path) -> None:
 def _cmd_map(args: argparse.Namespace) -> int:
     import torch
 
+    from h3edge.apps.offline import run_offline
     from h3edge.config import load_profile
     from h3edge.io import open_sequence
-    from h3edge.mapping.offline import run_offline
 
     profile = load_profile(args.profile)
     if args.device:
@@ -119,12 +119,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     scene = ensure_scene(out / f"scene_{args.preset}", PRESETS[args.preset])
     if args.offline:
-        from h3edge.mapping.offline import run_offline
+        from h3edge.apps.offline import run_offline
 
         run = run_offline(ReplicaSequence(scene), load_profile(args.profile), out / "map")
         _print_run(run, out / "map")
         return 0
-    from h3edge.serving.demo import run_demo
+    from h3edge.apps.demo import run_demo
 
     return run_demo(ReplicaSequence(scene), args.profile, out / "live", rate=args.rate)
 
@@ -149,7 +149,7 @@ def _profile_with_overrides(args: argparse.Namespace):
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from h3edge.serving.daemon import serve
+    from h3edge.apps.daemon import serve
 
     return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume)
 
@@ -253,13 +253,19 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 
 def _cmd_profile_report(args: argparse.Namespace) -> int:
-    from h3edge.serving.profile_report import load_document, report
+    from h3edge.profiling.report import load_document, report
 
     conf = _zenoh_conf(args) if args.source.startswith("zenoh:") or (args.vs or "").startswith("zenoh:") else None
     mid = args.map_id or "default"
+
+    def live(map_id: str) -> dict:
+        from h3edge.serving.transport import fetch_profile
+
+        return fetch_profile(conf, map_id)
+
     try:
-        doc = load_document(args.source, conf, mid)
-        other = load_document(args.vs, conf, mid) if args.vs else None
+        doc = load_document(args.source, live, mid)
+        other = load_document(args.vs, live, mid) if args.vs else None
     except (OSError, ValueError, TimeoutError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

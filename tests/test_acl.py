@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from h3edge.apps.demo import free_port, wait_drained
 from h3edge.io.replica import ReplicaSequence
-from h3edge.serving.demo import free_port, wait_drained
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = ("h3edge", "robot-01", "operator-laptop", "intruder")
@@ -67,9 +67,24 @@ def acl_service(tmp_path_factory, tiny_scene):
     profile = re.sub(r"(?m)^min_points = .*$", "min_points = 3", profile)  # the tiny scene is 160x120
     (d / "profile.toml").write_text(profile)
     log = open(d / "service.log", "ab")
-    proc = subprocess.Popen([sys.executable, "-m", "h3edge", "serve", "--profile", str(d / "profile.toml"),
-                             "--map-id", "acl", "--state-dir", str(d / "state"), "--zenoh-config", str(d / "zenoh.json5")],
-                            stdout=log, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "h3edge",
+            "serve",
+            "--profile",
+            str(d / "profile.toml"),
+            "--map-id",
+            "acl",
+            "--state-dir",
+            str(d / "state"),
+            "--zenoh-config",
+            str(d / "zenoh.json5"),
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     try:
         end = time.monotonic() + 120
         while True:  # the endpoint opens once the service has loaded

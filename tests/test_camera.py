@@ -1,8 +1,15 @@
 import numpy as np
 import pytest
 
-from h3edge.geometry.camera import (Intrinsics, backproject, invert_pose, look_at, pixel_rays_camera, project,
-                                    rigid_error)
+from h3edge.geometry.camera import (
+    Intrinsics,
+    backproject,
+    invert_pose,
+    look_at,
+    pixel_rays_camera,
+    project,
+    rigid_error,
+)
 from h3edge.geometry.poses import interpolate_pose, pose_from_tq
 
 K = Intrinsics(8, 6, 10.0, 12.0, 4.0, 3.0)

@@ -14,7 +14,9 @@ def test_every_profile_loads(path):
     px = prof.service.max_frame_pixels
     plan = memory_plan(settings, prof.service.memory_budget_mb, keyframe_bytes(settings, px), px,
                        prof.service.ingest_queue)
-    assert plan["fits"], plan  # the budget holds the tables, the voxel cap, query scratch, the largest frame's buffers and >= 8 keyframes
+    assert plan["fits"], (
+        plan
+    )  # the budget holds the tables, the voxel cap, query scratch, the largest frame's buffers and >= 8 keyframes
     assert prof.inference.decoders in ("onnx", "torch")
 
 

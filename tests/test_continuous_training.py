@@ -9,11 +9,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from h3edge.apps.offline import map_sequence
 from h3edge.eval.metrics import psnr
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.offline import map_sequence
 from h3edge.mapping.voxels import VoxelConfig
 
 LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),

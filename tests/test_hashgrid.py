@@ -9,7 +9,9 @@ import torch
 from h3edge.mapping.hashgrid import PRIMES, HashFunction, HashGrid, HashGridSpec
 
 BOUND = np.array([[-1.0, -2.0, 0.0], [3.0, 2.0, 1.5]])
-SPEC = HashGridSpec(levels=4, features=2, log2_table=12, base_resolution=6, per_level_scale=2.0)  # dense + hashed levels
+SPEC = HashGridSpec(
+    levels=4, features=2, log2_table=12, base_resolution=6, per_level_scale=2.0
+)  # dense + hashed levels
 BACKENDS = ["torch", "numba"]
 
 

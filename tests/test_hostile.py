@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.bench.frame_memory import frame_at, png_bomb, splice
 from h3edge.io.protocol import FrameMessage, PoseMessage, encode_frame, encode_pose
 from h3edge.io.replica import ReplicaSequence
-from h3edge.serving.demo import ServiceProcess, wait_drained
 from h3edge.serving.transport import Keys, RemoteError, open_session, query, wait_for_service
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
@@ -43,7 +43,9 @@ class Robot:
         f = self.seq[self.i % len(self.seq)]
         self.i += 1
         ts = ts_ns or time.time_ns()
-        return encode_frame(FrameMessage(ts, self.i, f.color, f.depth, f.intrinsics, f.pose if embed_pose else None)), ts
+        return encode_frame(
+            FrameMessage(ts, self.i, f.color, f.depth, f.intrinsics, f.pose if embed_pose else None)
+        ), ts
 
     def settle(self, received: int) -> dict:
         """Until ``received`` frames have arrived and each is mapped or dropped."""

@@ -16,7 +16,6 @@ from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.render import PriorLookup
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap, pack, unpack
-
 from tests.test_mapper import LEAN
 
 

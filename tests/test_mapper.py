@@ -54,8 +54,8 @@ def test_maps_tiny_scene(mapped):
 
 def test_uniform_texture_variant(tiny_scene):
     """H2-Mapping's uniform grid and voxel-count keyframe score behind the same mapper."""
-    from h3edge.mapping.texture_patterns import TextureConfig
     from h3edge.mapping.keyframes import KeyframeConfig
+    from h3edge.mapping.texture_patterns import TextureConfig
 
     seq = ReplicaSequence(tiny_scene)
     m = Mapper(dataclasses.replace(LEAN, texture=TextureConfig(quasi_heterogeneous=False),

@@ -6,8 +6,16 @@ import trimesh
 
 from h3edge.eval.cull import cull_mesh
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
-from h3edge.eval.metrics import (accuracy_completion, depth_error_map, depth_error_shares, depth_l1, mesh_to_mesh,
-                                 psnr, sample_surface, ssim)
+from h3edge.eval.metrics import (
+    accuracy_completion,
+    depth_error_map,
+    depth_error_shares,
+    depth_l1,
+    mesh_to_mesh,
+    psnr,
+    sample_surface,
+    ssim,
+)
 from h3edge.geometry.camera import Intrinsics, look_at
 
 
@@ -20,7 +28,9 @@ def test_psnr_known_answers():
     noisy = img + rng.normal(0, sigma, img.shape)
     assert psnr(noisy, img) == pytest.approx(-20 * np.log10(sigma), abs=0.1)
     u8 = (img * 255).astype(np.uint8)
-    assert psnr(np.clip(u8.astype(int) + 5, 0, 255).astype(np.uint8), u8) == pytest.approx(20 * np.log10(255 / 5), abs=1e-6)
+    assert psnr(np.clip(u8.astype(int) + 5, 0, 255).astype(np.uint8), u8) == pytest.approx(
+        20 * np.log10(255 / 5), abs=1e-6
+    )
     mask = np.zeros((64, 64), bool)
     mask[:10] = True
     off = img.copy()

@@ -77,7 +77,9 @@ def test_vermin_catches_a_tomllib_only_import(tmp_path):
     """The guard above has teeth: a bare ``import tomllib`` fails it, the version-checked import passes."""
     bad, good = tmp_path / "bad.py", tmp_path / "good.py"
     bad.write_text("import tomllib\n")
-    good.write_text("import sys\nif sys.version_info >= (3, 11):\n    import tomllib\nelse:\n    import tomli as tomllib\n")
+    good.write_text(
+        "import sys\nif sys.version_info >= (3, 11):\n    import tomllib\nelse:\n    import tomli as tomllib\n"
+    )
     run = VERMIN + [f"--target={TARGET_PYTHON}-", "--violations", "--no-tips"]
     assert subprocess.run(run + [str(bad)], capture_output=True).returncode != 0
     assert subprocess.run(run + [str(good)], capture_output=True).returncode == 0
@@ -128,8 +130,8 @@ def test_wheel_ships_profiles_and_bare_names_resolve(tmp_path):
     site = tmp_path / "site"
     with zipfile.ZipFile(wheel) as z:
         z.extractall(site)
-    code = ("import h3edge, h3edge.config as c; assert h3edge.__file__.startswith(%r), h3edge.__file__; "
-            "print(c.load_profile('orin-agx').name, c.load_profile('orin-nano').name)") % str(site)
+    code = (f"import h3edge, h3edge.config as c; assert h3edge.__file__.startswith({str(site)!r}), h3edge.__file__; "
+            "print(c.load_profile('orin-agx').name, c.load_profile('orin-nano').name)")
     env = {**os.environ, "PYTHONPATH": str(site)}
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -148,7 +150,7 @@ def test_clients_start_without_torch_numba_or_open3d(argv, tmp_path):
     run_dir.mkdir()
     (run_dir / "profile.json").write_text(json.dumps({"profile": "x86-cpu", "components": {}}))
     argv = [str(run_dir) if a == "RUN_DIR" else a for a in argv]
-    code = ("import sys\nfrom h3edge.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
-            "print(sorted(m for m in ('torch', 'numba', 'open3d', 'onnxruntime') if m in sys.modules))") % argv
+    code = (f"import sys\nfrom h3edge.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('torch', 'numba', 'open3d', 'onnxruntime') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.stdout.strip().splitlines()[-1] == "[]", r.stdout + r.stderr

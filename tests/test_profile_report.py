@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from h3edge.cli import main
-from h3edge.serving.profile_report import load_document, profile_document, report
+from h3edge.profiling.report import load_document, profile_document, report
 
 
 def _doc(scale: float, name: str) -> dict:

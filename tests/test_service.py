@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from h3edge.eval.evaluate import evaluate_geometry, EvalConfig
+from h3edge.apps.demo import ServiceProcess, wait_drained
+from h3edge.eval.evaluate import EvalConfig, evaluate_geometry
 from h3edge.eval.metrics import psnr
 from h3edge.io.protocol import FrameMessage, PoseMessage, decode_frame, encode_frame, encode_pose, pose_to_json
 from h3edge.io.replica import ReplicaSequence
+from h3edge.profiling.report import load_document
+from h3edge.profiling.timing import read_durations
 from h3edge.serving.checkpoint import read_checkpoint
-from h3edge.serving.demo import ServiceProcess, wait_drained
-from h3edge.mapping.timing import read_durations
-from h3edge.serving.profile_report import load_document
 from h3edge.serving.transport import Keys, RemoteError, open_session, publish_sequence, query, wait_for_service
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
@@ -128,11 +128,14 @@ def test_bad_mesh_request_gets_error_reply(served):
 
 
 def test_profile_query(served):
-    from h3edge.serving.profile_report import load_document, report
+    from h3edge.profiling.report import load_document, report
 
     svc, session, *_ = served
     p = json.loads(query(session, KEYS.profile))
-    live = load_document("zenoh:test", svc.client_config())  # what `h3edge profile report zenoh:test` reads
+    from h3edge.serving.transport import fetch_profile
+
+    # what `h3edge profile report zenoh:test` reads
+    live = load_document("zenoh:test", lambda mid: fetch_profile(svc.client_config(), mid))
     assert live["profile"] == "service-test" and "pose association" in report(live)
     assert live["inference"]["mapping_device"] == "cpu"
     if live["inference"]["decoders"] == "onnx":

@@ -15,11 +15,18 @@ import pytest
 from h3edge.config import load_profile
 from h3edge.geometry.camera import Intrinsics, look_at
 from h3edge.geometry.poses import interpolate_pose
-from h3edge.io.protocol import (FrameMessage, PoseMessage, ProtocolError, decode_frame, decode_pose, encode_frame,
-                                encode_pose)
+from h3edge.io.protocol import (
+    FrameMessage,
+    PoseMessage,
+    ProtocolError,
+    decode_frame,
+    decode_pose,
+    encode_frame,
+    encode_pose,
+)
 from h3edge.serving.association import PoseBuffer
 from h3edge.serving.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from h3edge.serving.service import memory_plan, keyframe_bytes
+from h3edge.serving.service import keyframe_bytes, memory_plan
 from h3edge.serving.systemd import Notifier
 
 INTR = Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)
@@ -179,8 +186,9 @@ def test_memory_plan_sets_keyframe_cap():
 
 
 def test_deploy_files():
-    import zenoh
     from pathlib import Path
+
+    import zenoh
 
     root = Path(__file__).resolve().parents[1]
     for f in ("zenoh-peer.json5", "zenoh-tls-acl.json5"):
@@ -203,7 +211,7 @@ def test_deploy_files():
 
 
 def test_duration_log_rotates_and_survives_write_errors(tmp_path, monkeypatch):
-    from h3edge.mapping.timing import DurationLog, Timings, read_durations
+    from h3edge.profiling.timing import DurationLog, Timings, read_durations
 
     path = tmp_path / "run" / "timings.jsonl"
     log_ = DurationLog(path, max_bytes=2000)
@@ -358,7 +366,9 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
         svc.mapper.process(seq[i])
         svc._write(*svc._capture())
     ckpt = svc.checkpoint_path
-    assert read_checkpoint(previous_path(ckpt))[0]["frames_mapped"] == 1 and read_checkpoint(ckpt)[0]["frames_mapped"] == 2
+    assert (
+        read_checkpoint(previous_path(ckpt))[0]["frames_mapped"] == 1 and read_checkpoint(ckpt)[0]["frames_mapped"] == 2
+    )
     ckpt.write_bytes(ckpt.read_bytes()[:1000])  # the newest truncated
     (ckpt.parent / "map.h3ckpt.tmp").write_bytes(b"x" * 100)
     again = MapService(settings, cfg, resume=True)

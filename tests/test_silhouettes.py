@@ -46,7 +46,9 @@ def slatted_scene(slats: bool = True) -> trimesh.Trimesh:
              trimesh.creation.box((4.0, 4.0, 0.05), trimesh.transformations.translation_matrix((0, 0.5, -0.025)))]
     if slats:
         for x in SLAT_X:
-            parts.append(trimesh.creation.box((0.03, 0.02, 0.6), trimesh.transformations.translation_matrix((x, 1.2, 0.9))))
+            parts.append(
+                trimesh.creation.box((0.03, 0.02, 0.6), trimesh.transformations.translation_matrix((x, 1.2, 0.9)))
+            )
     else:
         parts.append(trimesh.creation.box((0.63, 0.2, 0.6), trimesh.transformations.translation_matrix((0, 1.3, 0.9))))
     return trimesh.util.concatenate(parts)

@@ -11,9 +11,18 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.hashgrid import HashGridSpec, corner_indices_torch
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
 from h3edge.mapping.texture_grid import WARP_HASHES, QuasiHeteroTexture
-from h3edge.mapping.texture_patterns import (PLAIN, RICH, WEAK, TextureConfig, TexturePatterns, affine_matrix,
-                                             fuse_frame_directions, lift_segments, line_rotation,
-                                             voxel_gradient_stats)
+from h3edge.mapping.texture_patterns import (
+    PLAIN,
+    RICH,
+    WEAK,
+    TextureConfig,
+    TexturePatterns,
+    affine_matrix,
+    fuse_frame_directions,
+    lift_segments,
+    line_rotation,
+    voxel_gradient_stats,
+)
 
 EZ = np.array([0.0, 0.0, 1.0])
 

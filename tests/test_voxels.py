@@ -124,7 +124,9 @@ def test_dense_lookup_matches_locate_on_faces_and_inside():
     ijk = unpack(vm.voxel_keys)
     vs = vm.cfg.voxel_size
     inner = (ijk[rng.integers(0, len(ijk), 500)] + rng.random((500, 3))) * vs
-    lattice = (ijk[rng.integers(0, len(ijk), 500)] * 5 + rng.integers(0, 6, (500, 3))) * (vs / 5)  # 2 cm lattice, faces incl.
+    lattice = (ijk[rng.integers(0, len(ijk), 500)] * 5 + rng.integers(0, 6, (500, 3))) * (
+        vs / 5
+    )  # 2 cm lattice, faces incl.
     outside = rng.uniform(-3, 3, (500, 3))
     pts = np.concatenate([inner, lattice, outside])
     sdf, vox = PriorLookup(vm)(pts)

@@ -25,7 +25,8 @@ Runs are cached per variant under ``--work`` (a run is reused when its settings 
 match), so an interrupted benchmark resumes. Output: OUT.md, OUT.json, OUT_curve.png,
 OUT_classes.png.
 
-    python -m h3edge.bench.ablation [--scene default|studio|real] [--frames N] [--iterations 1 2 4] [--out docs/ablation]
+    python -m h3edge.bench.ablation [--scene default|studio|real] [--frames N] [--iterations 1 2 4] \
+        [--out docs/ablation]
 """
 
 from __future__ import annotations
@@ -39,11 +40,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from h3edge.apps.offline import run_offline
 from h3edge.bench.tables import markdown_table
 from h3edge.config import Profile, load_profile, parse_variant
 from h3edge.eval.metrics import psnr
 from h3edge.mapping.mapper import MapSettings
-from h3edge.mapping.offline import run_offline
 from h3edge.mapping.texture_patterns import PLAIN, RICH, WEAK
 
 log = logging.getLogger("h3edge.bench.ablation")
@@ -170,11 +171,17 @@ def row(name: str, table: str, settings: MapSettings, res: dict) -> dict:
             "class_psnr": res.get("class_psnr", {})}
 
 
-COLUMNS = [("variant", lambda r: r["variant"], None), ("PSNR held-out [dB]", lambda r: r["psnr_heldout_db"], 2),
-           ("SSIM", lambda r: r["ssim_heldout"], 3), ("Depth L1 [cm]", lambda r: r["depth_l1_heldout_cm"], 3),
-           ("Acc [cm]", lambda r: r["accuracy_cm"], 3), ("Comp [cm]", lambda r: r["completion_cm"], 3),
-           ("frame [ms]", lambda r: r["frame_ms_median"], 0),
-           ("texture [ms/frame]", lambda r: r["texture_ms_per_frame"], 1), ("keyframes", lambda r: r["keyframes"], None)]
+COLUMNS = [
+    ("variant", lambda r: r["variant"], None),
+    ("PSNR held-out [dB]", lambda r: r["psnr_heldout_db"], 2),
+    ("SSIM", lambda r: r["ssim_heldout"], 3),
+    ("Depth L1 [cm]", lambda r: r["depth_l1_heldout_cm"], 3),
+    ("Acc [cm]", lambda r: r["accuracy_cm"], 3),
+    ("Comp [cm]", lambda r: r["completion_cm"], 3),
+    ("frame [ms]", lambda r: r["frame_ms_median"], 0),
+    ("texture [ms/frame]", lambda r: r["texture_ms_per_frame"], 1),
+    ("keyframes", lambda r: r["keyframes"], None),
+]
 
 
 def format_table(title: str, rows: list[dict]) -> str:
@@ -187,7 +194,9 @@ def format_class_table(title: str, rows: list[dict]) -> str:
     cols = [("variant", lambda r: r["variant"], None)]
     for n in names:
         share = rows[0]["class_psnr"][n]["pixel_share"]
-        cols.append((f"{n} ({100 * share:.0f} % px)", lambda r, n=n: (r.get("class_psnr") or {}).get(n, {}).get("psnr_db"), 2))
+        cols.append(
+            (f"{n} ({100 * share:.0f} % px)", lambda r, n=n: (r.get("class_psnr") or {}).get(n, {}).get("psnr_db"), 2)
+        )
     return markdown_table(title, cols, rows)
 
 

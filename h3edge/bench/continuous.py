@@ -17,13 +17,13 @@ import logging
 import time
 from pathlib import Path
 
+from h3edge.apps.offline import map_sequence
 from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.tsdf import fuse_tsdf
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.offline import map_sequence
 
 log = logging.getLogger("h3edge.bench.continuous")
 

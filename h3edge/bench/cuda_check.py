@@ -98,11 +98,18 @@ def map_and_query(profile_name: str, device: str, frames: int, work: Path) -> di
     t0 = time.perf_counter()
     rgb, depth = view.render(f.intrinsics, f.pose)
     render_s = time.perf_counter() - t0
-    return {"device": str(m.device), "frames": len(times), "frame_ms_median": 1e3 * float(np.median(times[2:] or times)),
-            "mesh_faces": int(len(mesh.faces)), "mesh_s": mesh_s, "render_s": render_s,
-            "heldout_psnr_db": float(psnr(rgb, f.color)), "heldout_depth_l1_cm": 100 * float(depth_l1(depth, f.depth)[0]),
-            "inference": runtime.describe(), "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20
-                                                              if m.device.type == "cuda" else None)}
+    return {
+        "device": str(m.device),
+        "frames": len(times),
+        "frame_ms_median": 1e3 * float(np.median(times[2:] or times)),
+        "mesh_faces": int(len(mesh.faces)),
+        "mesh_s": mesh_s,
+        "render_s": render_s,
+        "heldout_psnr_db": float(psnr(rgb, f.color)),
+        "heldout_depth_l1_cm": 100 * float(depth_l1(depth, f.depth)[0]),
+        "inference": runtime.describe(),
+        "peak_cuda_mb": (torch.cuda.max_memory_allocated() / 2**20 if m.device.type == "cuda" else None),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

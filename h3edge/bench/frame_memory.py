@@ -28,13 +28,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.bench.service import _rss_mb
 from h3edge.bench.tables import write_table
 from h3edge.config import PROFILES_DIR, load_profile
 from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import FrameMessage, encode_frame
 from h3edge.io.replica import ReplicaSequence
-from h3edge.serving.demo import ServiceProcess, wait_drained
 from h3edge.serving.transport import Keys, open_session, query, wait_for_service
 from h3edge.sim.make import PRESETS, ensure_scene
 

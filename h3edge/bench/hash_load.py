@@ -22,11 +22,11 @@ import numpy as np
 import torch
 import trimesh
 
+from h3edge.apps.offline import map_sequence
 from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.offline import map_sequence
 
 log = logging.getLogger(__name__)
 

@@ -93,9 +93,13 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"### query inference: PyTorch eager vs onnxruntime ({', '.join(providers)}), {args.profile}", "",
              "| what | eager [s] | onnxruntime [s] | speed-up |", "|---|---|---|---|"]
     lines += [f"| {n} | {a:.3f} | {b:.3f} | {a / b:.2f}x |" for n, a, b in rows]
-    lines += ["", f"Map: default scene, {m.frames_mapped} frames (every 4th), {len(m.voxels)} voxels; a snapshot with "
-              f"both decoders on the shared sessions {snapshot_export_s * 1000:.0f} ms; torch threads {torch.get_num_threads()}. "
-              f"`python -m h3edge.bench.inference` ({time.strftime('%Y-%m-%d')}, 2-core CPU)."]
+    lines += [
+        "",
+        f"Map: default scene, {m.frames_mapped} frames (every 4th), {len(m.voxels)} voxels; a snapshot with "
+        f"both decoders on the shared sessions {snapshot_export_s * 1000:.0f} ms; "
+        f"torch threads {torch.get_num_threads()}. "
+        f"`python -m h3edge.bench.inference` ({time.strftime('%Y-%m-%d')}, 2-core CPU).",
+    ]
     text = "\n".join(lines)
     print(text)
     Path(f"{args.out}.md").write_text(text + "\n")

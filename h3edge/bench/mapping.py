@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from h3edge.apps.offline import run_offline
 from h3edge.bench.tables import cell, markdown_table
 from h3edge.config import apply_overrides, load_profile, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate
@@ -51,7 +52,6 @@ from h3edge.eval.tsdf import fuse_tsdf
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.replica import ReplicaSequence
 from h3edge.io.sequence import read_pose_rows, write_color, write_depth, write_pose_rows
-from h3edge.mapping.offline import run_offline
 
 log = logging.getLogger("h3edge.bench.mapping")
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.io.protocol import pose_to_json
 from h3edge.io.replica import ReplicaSequence
-from h3edge.serving.demo import ServiceProcess, wait_drained
 from h3edge.serving.transport import Keys, open_session, publish_sequence, query, wait_for_service
 from h3edge.sim.make import PRESETS, ensure_scene
 
@@ -114,7 +114,9 @@ def run_soak(profile: str, work: Path, frames: int, rate: float, budget_mb: int)
     seq = _Looped(ReplicaSequence(scene), frames)
     keys = Keys.for_map("soak")
     prof_path = work / "soak.toml"
-    src = Path(profile) if Path(profile).suffix else Path(__file__).resolve().parents[2] / "profiles" / f"{profile}.toml"
+    src = (
+        Path(profile) if Path(profile).suffix else Path(__file__).resolve().parents[2] / "profiles" / f"{profile}.toml"
+    )
     text = src.read_text()
     lines = [ln for ln in text.splitlines() if not ln.startswith("min_points")]  # 160x120: 3 points per voxel
     text = "\n".join(lines).replace("[voxels]", "[voxels]\nmin_points = 3", 1)
@@ -167,17 +169,38 @@ def main(argv: list[str] | None = None) -> int:
         seq = ReplicaSequence(scene)
         r = run_live(seq, args.profile, work, args.rate)
         res["live"] = r
-        md.append(_table(
-            f"live: default scene 640x480 streamed at {args.rate:g} Hz ({args.profile})",
-            ["measure", "value", "target"],
-            [["frames sent / received / mapped", f"{r['sent']} / {r['received']} / {r['mapped']}", "received = sent"],
-             ["received rate [Hz]", f"{r['received_hz']:.1f}", "30"],
-             ["dropped (by reason)", json.dumps(r["dropped"]), "queue_full only"],
-             ["status query median [ms] (mapping / idle)", f"{r['status_ms_mapping']:.1f} / {r['status_ms_idle']:.1f}", "< 20"],
-             ["mesh query 2 cm [s] (mapping / idle)", f"{r['mesh_s_mapping']:.2f} / {r['mesh_s_idle']:.2f}", "< 2"],
-             ["render 320x240 [s] (mapping / idle)", f"{r['render_s_mapping']:.2f} / {r['render_s_idle']:.2f}", "< 1"],
-             ["mapper frame median [ms]", f"{r['frame_ms_median']:.0f}", ""],
-             ["RSS after start / peak [MB]", f"{r['rss_start_mb']:.0f} / {r['rss_peak_mb']:.0f}", ""]]))
+        md.append(
+            _table(
+                f"live: default scene 640x480 streamed at {args.rate:g} Hz ({args.profile})",
+                ["measure", "value", "target"],
+                [
+                    [
+                        "frames sent / received / mapped",
+                        f"{r['sent']} / {r['received']} / {r['mapped']}",
+                        "received = sent",
+                    ],
+                    ["received rate [Hz]", f"{r['received_hz']:.1f}", "30"],
+                    ["dropped (by reason)", json.dumps(r["dropped"]), "queue_full only"],
+                    [
+                        "status query median [ms] (mapping / idle)",
+                        f"{r['status_ms_mapping']:.1f} / {r['status_ms_idle']:.1f}",
+                        "< 20",
+                    ],
+                    [
+                        "mesh query 2 cm [s] (mapping / idle)",
+                        f"{r['mesh_s_mapping']:.2f} / {r['mesh_s_idle']:.2f}",
+                        "< 2",
+                    ],
+                    [
+                        "render 320x240 [s] (mapping / idle)",
+                        f"{r['render_s_mapping']:.2f} / {r['render_s_idle']:.2f}",
+                        "< 1",
+                    ],
+                    ["mapper frame median [ms]", f"{r['frame_ms_median']:.0f}", ""],
+                    ["RSS after start / peak [MB]", f"{r['rss_start_mb']:.0f} / {r['rss_peak_mb']:.0f}", ""],
+                ],
+            )
+        )
     if "soak" not in args.skip:
         r = run_soak(args.profile, work, args.soak_frames, args.rate, args.soak_budget_mb)
         res["soak"] = r
@@ -196,7 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Path(f"{out}.md").write_text(text + f"\n\n`python -m h3edge.bench.service` ({time.strftime('%Y-%m-%d')}, 2-core CPU)\n")
+    Path(f"{out}.md").write_text(
+        text + f"\n\n`python -m h3edge.bench.service` ({time.strftime('%Y-%m-%d')}, 2-core CPU)\n"
+    )
     Path(f"{out}.json").write_text(json.dumps(res, indent=1) + "\n")
     return 0
 

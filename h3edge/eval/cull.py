@@ -31,7 +31,9 @@ def visible_vertices(mesh: trimesh.Trimesh, poses: np.ndarray, intr: Intrinsics,
     for T in poses:
         uv, z = project(verts, small, T)
         with np.errstate(invalid="ignore"):
-            inside = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < small.width) & (uv[:, 1] >= 0) & (uv[:, 1] < small.height)
+            inside = (
+                (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < small.width) & (uv[:, 1] >= 0) & (uv[:, 1] < small.height)
+            )
         if not inside.any():
             continue
         depth = rc.render_depth(small, T)

@@ -20,8 +20,15 @@ import numpy as np
 import trimesh
 
 from h3edge.eval.cull import cull_mesh
-from h3edge.eval.metrics import (accuracy_completion, depth_error_shares, depth_l1, mesh_to_mesh, psnr,
-                                 sample_surface, ssim)
+from h3edge.eval.metrics import (
+    accuracy_completion,
+    depth_error_shares,
+    depth_l1,
+    mesh_to_mesh,
+    psnr,
+    sample_surface,
+    ssim,
+)
 from h3edge.geometry.camera import Intrinsics
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.sequence import Sequence

@@ -42,7 +42,7 @@ class Intrinsics:
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics for the same camera resampled to ``width`` x ``height`` (pixel-area scaling).
 
         With pixel-centre rays, scaling maps pixel edges onto pixel edges, so cx, cy scale with

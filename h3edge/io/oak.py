@@ -148,7 +148,9 @@ def group_to_message(group, frame_id: int, clock: HostClock, fallback: Intrinsic
         raise ValueError(f"colour frame has shape {getattr(bgr, 'shape', None)}, expected (H, W, 3)")
     mm = depth.getFrame()
     if mm is None or mm.dtype != np.uint16 or mm.ndim != 2:
-        raise ValueError(f"depth frame is {getattr(mm, 'dtype', None)} {getattr(mm, 'shape', None)}, expected uint16 (H, W) mm")
+        raise ValueError(
+            f"depth frame is {getattr(mm, 'dtype', None)} {getattr(mm, 'shape', None)}, expected uint16 (H, W) mm"
+        )
     h, w = bgr.shape[:2]
     if mm.shape != (h, w):  # aligned to colour but at another resolution: nearest keeps depth edges
         mm = cv2.resize(mm, (w, h), interpolation=cv2.INTER_NEAREST)

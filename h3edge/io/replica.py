@@ -22,8 +22,7 @@ import numpy as np
 import yaml
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.io.sequence import (DatasetError, Frame, SequenceBase, read_color, read_depth,
-                                read_pose_rows)
+from h3edge.io.sequence import DatasetError, Frame, SequenceBase, read_color, read_depth, read_pose_rows
 
 log = logging.getLogger(__name__)
 _FRAME_RE = re.compile(r"^frame(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
@@ -132,7 +131,7 @@ class ReplicaSequence(SequenceBase):
         return p if p.is_file() else None
 
     @property
-    def heldout(self) -> "ReplicaSequence | None":
+    def heldout(self) -> ReplicaSequence | None:
         """Held-out evaluation views of the own format (``heldout/``), or None."""
         h = self.root / "heldout"
         return ReplicaSequence(h) if h.is_dir() else None

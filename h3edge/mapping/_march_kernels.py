@@ -9,7 +9,6 @@ import math
 import numba as nb
 import numpy as np
 
-
 _BITS = 21  # as h3edge.mapping.voxels packs keys
 _OFF = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1

@@ -157,9 +157,16 @@ class HashGrid(torch.nn.Module):
     ``hash_functions``: the ways the one table can be indexed (``forward(..., fn=i)``); the default
     is the single instant-NGP hash."""
 
-    def __init__(self, spec: HashGridSpec, bound: np.ndarray, hash_functions: tuple[HashFunction, ...] = (HashFunction(),),
-                 backend: str = "auto", init_scale: float = 1e-4, seed: int = 0,
-                 device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        spec: HashGridSpec,
+        bound: np.ndarray,
+        hash_functions: tuple[HashFunction, ...] = (HashFunction(),),
+        backend: str = "auto",
+        init_scale: float = 1e-4,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ):
         super().__init__()
         self.spec = spec
         self.hash_functions = tuple(hash_functions)

@@ -22,8 +22,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 from dataclasses import field as dc_field
 
 import numpy as np
@@ -40,9 +40,9 @@ from h3edge.mapping.render import MapRenderer, RenderConfig
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns, voxel_gradient_stats
-from h3edge.mapping.timing import Timings
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
+from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
@@ -362,14 +362,25 @@ class Mapper:
     def stats(self) -> dict:
         kf_bytes = sum(k.payload.nbytes for k in self.keyframes.keyframes if k.payload is not None)
         grids = sum(g.table.numel() * 3 * 4 for g in self.field.hash_grids()) if self.field else 0
-        return {"frames_mapped": self.frames_mapped, "iterations": dict(self.iterations),
-                "dropped": dict(self.dropped), "voxels": len(self.voxels),
-                "voxels_refused": self.voxels.refused, "vertices": len(self.voxels.vertex_keys),
-                "keyframes": len(self.keyframes.keyframes), "keyframes_pruned": self.keyframes.pruned,
-                "keyframes_evicted": self.keyframes.evicted,
-                "device": str(self.device),
-                "texture_classes": self.patterns.counts(len(self.voxels)) if self.settings.texture.quasi_heterogeneous else {},
-                "memory_bytes": {"keyframes": kf_bytes, "hash_grids_with_adam": grids,
-                                 "priors": len(self.voxels.vertex_keys) * 4 * 3,
-                                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
-                                 "texture_patterns": self.patterns.nbytes}}
+        return {
+            "frames_mapped": self.frames_mapped,
+            "iterations": dict(self.iterations),
+            "dropped": dict(self.dropped),
+            "voxels": len(self.voxels),
+            "voxels_refused": self.voxels.refused,
+            "vertices": len(self.voxels.vertex_keys),
+            "keyframes": len(self.keyframes.keyframes),
+            "keyframes_pruned": self.keyframes.pruned,
+            "keyframes_evicted": self.keyframes.evicted,
+            "device": str(self.device),
+            "texture_classes": self.patterns.counts(len(self.voxels))
+            if self.settings.texture.quasi_heterogeneous
+            else {},
+            "memory_bytes": {
+                "keyframes": kf_bytes,
+                "hash_grids_with_adam": grids,
+                "priors": len(self.voxels.vertex_keys) * 4 * 3,
+                "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
+                "texture_patterns": self.patterns.nbytes,
+            },
+        }

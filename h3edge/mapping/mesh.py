@@ -8,7 +8,7 @@ unobserved space. Vertex colours come from the colour field at the vertices.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import trimesh

@@ -83,7 +83,9 @@ def mlp_to_onnx(module: nn.Module, name: str, doc: str = "", weights_as_inputs: 
         out = f"h{i}"
         if isinstance(layer, nn.Linear):
             w = layer.weight.detach().cpu().numpy().astype(np.float32)
-            b = (layer.bias.detach().cpu().numpy() if layer.bias is not None else np.zeros(w.shape[0])).astype(np.float32)
+            b = (layer.bias.detach().cpu().numpy() if layer.bias is not None else np.zeros(w.shape[0])).astype(
+                np.float32
+            )
             n_in = w.shape[1] if n_in is None else n_in
             if weights_as_inputs:
                 weight_inputs += [helper.make_tensor_value_info(f"w{i}", TensorProto.FLOAT, list(w.shape)),
@@ -150,7 +152,7 @@ class OrtMLP(nn.Module):
     session whose graph takes the weights as inputs, with those weights in ``weights``.
     """
 
-    def __init__(self, model: "bytes | ort.InferenceSession", cfg: InferenceConfig = InferenceConfig(),
+    def __init__(self, model: bytes | ort.InferenceSession, cfg: InferenceConfig = InferenceConfig(),
                  weights: dict[str, np.ndarray] | None = None):
         super().__init__()
         self.session = model if isinstance(model, ort.InferenceSession) else make_session(model, cfg)

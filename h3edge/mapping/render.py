@@ -98,8 +98,17 @@ class PriorLookup:
         sdf = np.empty(len(pts), np.float64)
         vox = np.empty(len(pts), np.int64)
         if len(self.vv):
-            _march_kernel()[1](np.ascontiguousarray(pts, np.float64), self.table.hkeys, self.table.hids, self.vs, self.vv,
-                               self.priors if values is None else values, self.eps, sdf, vox)
+            _march_kernel()[1](
+                np.ascontiguousarray(pts, np.float64),
+                self.table.hkeys,
+                self.table.hids,
+                self.vs,
+                self.vv,
+                self.priors if values is None else values,
+                self.eps,
+                sdf,
+                vox,
+            )
         else:
             sdf[:], vox[:] = 0, -1
         return sdf, vox

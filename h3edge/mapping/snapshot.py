@@ -59,7 +59,7 @@ class MapView:
         self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
 
-    def frozen(self, decoders: DecoderRuntime | None = None) -> "MapView":
+    def frozen(self, decoders: DecoderRuntime | None = None) -> MapView:
         """An independent copy (call where the field is not being updated). With ``decoders`` its
         SDF and colour decoders run on that runtime's shared onnxruntime sessions."""
         field = _inference_copy(self.field)
@@ -102,7 +102,10 @@ class MapView:
         near = np.flatnonzero((vox >= 0) & (np.abs(prior) < margin))
         if len(near):
             p = torch.from_numpy(pts[near].astype(np.float32)).to(self.device)
-            known = (torch.from_numpy(out[near]).to(self.device), torch.ones(len(near), dtype=torch.bool, device=self.device))
+            known = (
+                torch.from_numpy(out[near]).to(self.device),
+                torch.ones(len(near), dtype=torch.bool, device=self.device),
+            )
             out[near] = self.field.sdf(p, self.voxels, prior=known)[0].cpu().numpy()
         return out
 

@@ -81,6 +81,7 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
     arrays["voxels/voxel_vertices"] = vx.voxel_vertices.copy()
     arrays["voxels/priors"] = _np(vx.priors)
     arrays["voxels/prior_set"] = vx.prior_set.copy()
+    arrays["voxels/prior_obs"] = vx.prior_obs.copy()
     arrays["prior_opt/m"] = _np(m.prior_opt.m)
     arrays["prior_opt/v"] = _np(m.prior_opt.v)
     # keyframes
@@ -88,9 +89,13 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
     meta["keyframes"] = [{"frame_id": k.frame_id, "selected": k.selected_this_round,
                           "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist()} for k in kfs]
     meta["keyframe_policy"] = {"frames_since_insert": m.keyframes.frames_since_insert, "pruned": m.keyframes.pruned}
-    for name, get, dt, w in (("voxels", lambda k: k.voxels, np.int64, ()), ("scores", lambda k: k.scores, np.float64, ()),
-                             ("pix", lambda k: k.payload.pix, np.int32, ()), ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
-                             ("depth", lambda k: k.payload.depth, np.float32, ())):
+    for name, get, dt, w in (
+        ("voxels", lambda k: k.voxels, np.int64, ()),
+        ("scores", lambda k: k.scores, np.float64, ()),
+        ("pix", lambda k: k.payload.pix, np.int32, ()),
+        ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
+        ("depth", lambda k: k.payload.depth, np.float32, ()),
+    ):
         arrays[f"kf/{name}"], arrays[f"kf/{name}_offsets"] = _concat([get(k) for k in kfs], dt, w)
     arrays["kf/observed"] = m.keyframes.observed.copy()
     # texture patterns
@@ -139,10 +144,14 @@ def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarr
     vx.voxel_vertices = arrays["voxels/voxel_vertices"].astype(np.int64)
     vx.priors = t(arrays["voxels/priors"]).float().requires_grad_(True)
     vx.prior_set = arrays["voxels/prior_set"].astype(bool)
+    vx.prior_obs = (arrays["voxels/prior_obs"].astype(np.uint8) if "voxels/prior_obs" in arrays
+                    else np.zeros(len(vx.prior_set), np.uint8))
     vx.refused = int(meta["voxels_refused"])
     m.prior_opt.m, m.prior_opt.v = t(arrays["prior_opt/m"]).float(), t(arrays["prior_opt/v"]).float()
     m.prior_opt.steps = int(meta["prior_steps"])
-    parts = {n: _split(arrays[f"kf/{n}"], arrays[f"kf/{n}_offsets"]) for n in ("voxels", "scores", "pix", "rgb", "depth")}
+    parts = {
+        n: _split(arrays[f"kf/{n}"], arrays[f"kf/{n}_offsets"]) for n in ("voxels", "scores", "pix", "rgb", "depth")
+    }
     kfs = []
     for i, km in enumerate(meta["keyframes"]):
         payload = StoredFrame(parts["pix"][i], parts["rgb"][i], parts["depth"][i], np.asarray(km["pose"], np.float64),

@@ -3,7 +3,8 @@
 - :class:`UniformTexture`: H2-Mapping's single multiresolution hash grid.
 - :class:`QuasiHeteroTexture`: H3-Mapping's quasi-heterogeneous grids (Sec. III): each sample is
   encoded in the identity space (always), in the scaling-warped space S(x) = C x when its voxel is
-  weak texture (every classified voxel with ``scaling_everywhere``, docs/textures.md), and in the affine-warped space of each of its voxel's low-frequency directions m
+  weak texture (every classified voxel with ``scaling_everywhere``, docs/textures.md), and in
+  the affine-warped space of each of its voxel's low-frequency directions m
   (x -> a(c) + A_m (x - c), A_m = diag(1, 1, C) R(DIR_m)^T about the voxel centre c). All spaces
   read ONE hash table, each through its own hash function (fixed primes and offsets); the
   features are concatenated [identity | weak | dir_0 .. dir_{M-1}] into (M + 2) L F values with
@@ -104,7 +105,9 @@ class QuasiHeteroTexture(nn.Module):
         blocks.append(zeros().index_copy(0, idx, self.grid(self.cfg.compression * xn[idx], fn=1, normalised=True))
                       if len(idx) else zeros())
         for m in range(self.cfg.max_directions):
-            idx = torch.nonzero(known & (self.n_dirs[vox] > m)).squeeze(1) if len(self.n_dirs) else xn.new_zeros(0).long()
+            idx = (
+                torch.nonzero(known & (self.n_dirs[vox] > m)).squeeze(1) if len(self.n_dirs) else xn.new_zeros(0).long()
+            )
             if len(idx):
                 w = self.warp_affine(xn[idx], vox[idx], m)
                 blocks.append(zeros().index_copy(0, idx, self.grid(w, fn=2 + m, normalised=True)))

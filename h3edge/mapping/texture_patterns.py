@@ -192,7 +192,9 @@ def fuse_frame_directions(vox: np.ndarray, dirs: np.ndarray, weights: np.ndarray
     return out
 
 
-def voxel_gradient_stats(vox: np.ndarray, g: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def voxel_gradient_stats(
+    vox: np.ndarray, g: np.ndarray, scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per voxel of a frame: (voxel ids, cnt = pixel count (x ``scale`` for strided pixels), mean g)."""
     ok = vox >= 0
     ids, inv = np.unique(vox[ok], return_inverse=True)

@@ -66,7 +66,7 @@ def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float,
     return torch.cat([free, band], 1), cfg.free_samples
 
 
-def free_depths_in_voxels(rays: "RayBatch", voxels: VoxelMap, cfg: TrainConfig, truncation: float,
+def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, truncation: float,
                           generator: torch.Generator | None = None) -> torch.Tensor:
     """``cfg.free_samples`` z-depths per ray (R, F), sorted, between ``near`` and depth - truncation,
     inside allocated voxels where the ray has enough of them: picked at random among

@@ -13,10 +13,12 @@ SDF priors are stored in truncation units (metres / ``truncation``), as the auth
 is initialised once, projectively: prior = (measured depth - vertex z) / truncation, when it lies
 within ``init_range`` of the surface (or anywhere in front of it, truncated to ``prior_clamp``, when
 that is set) and projects inside the image onto valid depth, only when all 8 corners of its voxel
-do (the paper). With ``prior_retry`` every frame retries the unset vertices of the voxels it observes, as the authors' code does (one try at
-allocation fails most of the time on real depth, which has holes at every edge). Until then a
-vertex reads ``unset_prior``. The coarse SDF of a point is the trilinear interpolation of its
-voxel's 8 priors.
+do (the paper). With ``prior_retry`` every frame retries the unset vertices of the voxels it
+observes, as the authors' code does (one try at allocation fails most of the time on real depth,
+which has holes at every edge). Until then a vertex reads ``unset_prior``. With
+``prior_fusion_frames`` K > 0, priors are instead fused per vertex: the running mean of the
+projective SDF over the first K frames that see the vertex within the band, as TSDF fusion.
+The coarse SDF of a point is the trilinear interpolation of its voxel's 8 priors.
 """
 
 from __future__ import annotations
@@ -102,6 +104,11 @@ class VoxelConfig:
     prior_clamp: float = 1.0
     # the value an unset prior reads as, truncation units (0 reads as "on the surface")
     unset_prior: float = 0.0
+    # 0: the paper's initialisation (a voxel's 8 priors set together, once). K > 0: each vertex's
+    # prior is the running mean of its projective SDF over the first K frames that see it within
+    # the band (per vertex, as TSDF fusion; training refines it in between)
+    prior_fusion_frames: int = 0
+    fusion_behind: float = 0.245  # m behind the measured surface a vertex still takes a fused value
 
 
 
@@ -121,6 +128,7 @@ class VoxelMap:
         self.voxel_vertices = np.zeros((0, 8), np.int64)
         self.priors = torch.zeros(0, device=self.device, requires_grad=True)  # truncation units
         self.prior_set = np.zeros(0, bool)
+        self.prior_obs = np.zeros(0, np.uint8)  # fused observations per vertex (prior_fusion_frames)
         self.refused = 0  # voxels not allocated because of the cap
 
     def __len__(self) -> int:
@@ -167,6 +175,10 @@ class VoxelMap:
             new = new[:max(room, 0)]
         if len(new):
             self._insert(new)
+        if self.cfg.prior_fusion_frames > 0:
+            ids = self.voxels.find(cand)
+            self._fuse_priors(ids[ids >= 0], depth, intr, c2w)
+            return new
         if self.cfg.prior_retry:  # every voxel this frame sees that still has an unset vertex
             ids = self.voxels.find(cand)
             ids = ids[ids >= 0]
@@ -189,6 +201,44 @@ class VoxelMap:
         grown = torch.full((len(fresh),), float(self.cfg.unset_prior), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
+        self.prior_obs = np.concatenate([self.prior_obs, np.zeros(len(fresh), np.uint8)])
+
+    def _projective_sdf(self, vertex_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """(measured depth - vertex z in metres, projects inside the image onto valid depth)."""
+        pos = unpack(self.vertex_keys[vertex_ids]) * self.cfg.voxel_size
+        uv, z = project(pos.astype(np.float64), intr, c2w)
+        with np.errstate(invalid="ignore"):
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
+        d = np.zeros(len(z))
+        ui = np.clip(np.nan_to_num(uv[:, 0]), 0, intr.width - 1).astype(int)
+        vi = np.clip(np.nan_to_num(uv[:, 1]), 0, intr.height - 1).astype(int)
+        d[inside] = depth[vi[inside], ui[inside]]
+        return d - z, inside & (d > 0)
+
+    def _fuse_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
+        """Running-mean projective priors of the vertices of ``voxel_ids`` seen fewer than
+        ``prior_fusion_frames`` times (see VoxelConfig)."""
+        vid = np.unique(self.voxel_vertices[voxel_ids].reshape(-1))
+        vid = vid[self.prior_obs[vid] < self.cfg.prior_fusion_frames]
+        if len(vid) == 0:
+            return
+        sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
+        with np.errstate(invalid="ignore"):
+            band = (sdf > -self.cfg.fusion_behind) & ((sdf < self.cfg.init_range) | (self.cfg.prior_clamp > 0))
+        ok = valid & band
+        t = vid[ok]
+        if len(t) == 0:
+            return
+        c = self.cfg.prior_clamp if self.cfg.prior_clamp > 0 else np.inf
+        v = np.clip(sdf[ok] / self.cfg.truncation, -c, c).astype(np.float32)
+        n = self.prior_obs[t].astype(np.float32)
+        tt = torch.from_numpy(t).to(self.device)
+        old = self.priors.data[tt].cpu().numpy()
+        mean = np.where(n > 0, (old * n + v) / (n + 1), v).astype(np.float32)
+        self.priors.data[tt] = torch.from_numpy(mean).to(self.device)
+        self.prior_obs[t] += 1
+        self.prior_set[t] = True
 
     def _init_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
         """Projective priors for the unset vertices of ``voxel_ids`` (see the module docstring)."""
@@ -263,7 +313,7 @@ class VoxelMap:
         w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
         return (self.priors[vid] * w).sum(1) * inside, inside
 
-    def table(self) -> "VoxelTable":
+    def table(self) -> VoxelTable:
         """Open-addressed hash table of the voxel ids (constant-time lookups for ray marching, in
         memory proportional to the voxel count wherever the voxels are) and their bounding box."""
         from h3edge.mapping import _march_kernels as k

@@ -65,7 +65,10 @@ class PoseBuffer:
             t0, t1 = self._t[i - 1], self._t[i]
             a, b = self._poses[i - 1], self._poses[i]
         if t1 - t0 > self.max_gap_ns:
-            return "miss", f"poses around the frame are {(t1 - t0) / 1e6:.1f} ms apart (max {self.max_gap_ns / 1e6:.1f})"
+            return (
+                "miss",
+                f"poses around the frame are {(t1 - t0) / 1e6:.1f} ms apart (max {self.max_gap_ns / 1e6:.1f})",
+            )
         speed = float(np.linalg.norm(b[:3, 3] - a[:3, 3])) / ((t1 - t0) * 1e-9)
         if speed > self.max_speed:
             return "miss", (f"the poses around the frame imply {speed:.3g} m/s (max {self.max_speed:g}): "

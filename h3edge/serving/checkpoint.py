@@ -48,8 +48,10 @@ def check_writable(directory: Path) -> None:
             os.fsync(f.fileno())
         probe.unlink()
     except OSError as e:
-        raise CheckpointError(f"state directory {directory} is not writable ({type(e).__name__}: {e.strerror or e}); "
-                              "checkpoints could not be saved: fix its owner / permissions or pass --state-dir") from None
+        raise CheckpointError(
+            f"state directory {directory} is not writable ({type(e).__name__}: {e.strerror or e}); "
+            "checkpoints could not be saved: fix its owner / permissions or pass --state-dir"
+        ) from None
 
 
 def previous_path(path: Path) -> Path:

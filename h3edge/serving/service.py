@@ -40,18 +40,34 @@ import numpy as np
 
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
-from h3edge.io.protocol import (MAX_SIDE, FrameMessage, FrameTooLarge, ProtocolError, check_map_id, decode_frame, decode_pose,
-                                encode_frame, pose_from_json)
+from h3edge.io.protocol import (
+    MAX_SIDE,
+    FrameMessage,
+    FrameTooLarge,
+    ProtocolError,
+    check_map_id,
+    decode_frame,
+    decode_pose,
+    encode_frame,
+    pose_from_json,
+)
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import RAY_TABLES, Mapper, MapSettings
-from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
 from h3edge.mapping.mesh import working_bytes
+from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
 from h3edge.mapping.snapshot import MapView
 from h3edge.mapping.state import mapper_state, restore_mapper
-from h3edge.mapping.timing import DurationLog
+from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint import (CHECKPOINT_NAME, CheckpointError, check_writable, previous_path,
-                                      read_checkpoint, remove_leftovers, write_checkpoint)
+from h3edge.serving.checkpoint import (
+    CHECKPOINT_NAME,
+    CheckpointError,
+    check_writable,
+    previous_path,
+    read_checkpoint,
+    remove_leftovers,
+    write_checkpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -596,9 +612,9 @@ class MapService:
         return {**info, **(self.decoders.describe() if self.decoders is not None else {})}
 
     def profile(self) -> dict:
-        """The timing profile document (:mod:`h3edge.serving.profile_report`) plus a markdown table."""
-        from h3edge.mapping.timing import format_timings
-        from h3edge.serving.profile_report import profile_document
+        """The timing profile document (:mod:`h3edge.profiling.report`) plus a markdown table."""
+        from h3edge.profiling.report import profile_document
+        from h3edge.profiling.timing import format_timings
 
         summary = self.mapper.timings.summary()
         n = self.mapper.frames_mapped

@@ -17,9 +17,9 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import zenoh
@@ -35,7 +35,7 @@ class Keys:
     base: str
 
     @classmethod
-    def for_map(cls, map_id: str) -> "Keys":
+    def for_map(cls, map_id: str) -> Keys:
         return cls(f"h3edge/{check_map_id(map_id)}")
 
     frame = property(lambda self: f"{self.base}/frame")
@@ -228,6 +228,12 @@ def query(session: zenoh.Session, key: str, payload: dict | None = None, params:
             return reply.ok.payload.to_bytes()
         raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
     raise TimeoutError(f"no reply from {selector} within {timeout:.0f} s (is the service running?)")
+
+
+def fetch_profile(conf: zenoh.Config, map_id: str, timeout: float = 10.0) -> dict:
+    """The profile document of the live service ``map_id`` (for ``h3edge profile report zenoh:``)."""
+    with open_session(conf) as s:
+        return json.loads(query(s, Keys.for_map(map_id).profile, timeout=timeout))
 
 
 def wait_for_service(session: zenoh.Session, keys: Keys, timeout: float = 60.0) -> dict:

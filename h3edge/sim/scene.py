@@ -181,15 +181,57 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
         "wall_north": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (222, 218, 206))),
         "wall_west": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (190, 208, 186)))})
     # wall decorations, a little proud of the wall
-    add("blinds", _quad([1.5, 0.03, 2.3], [2.0, 0, 0], [0, 0, -1.4]), 0.003, "stripes", lambda h, w: tx.blinds(rng, h, w, 14))
-    add("tiles", _quad([5.8, D - 0.01, 1.6], [-2.2, 0, 0], [0, 0, -0.7]), 0.003, "stripes", lambda h, w: tx.tiles(rng, h, w, 50, 3))
+    add(
+        "blinds",
+        _quad([1.5, 0.03, 2.3], [2.0, 0, 0], [0, 0, -1.4]),
+        0.003,
+        "stripes",
+        lambda h, w: tx.blinds(rng, h, w, 14),
+    )
+    add(
+        "tiles",
+        _quad([5.8, D - 0.01, 1.6], [-2.2, 0, 0], [0, 0, -0.7]),
+        0.003,
+        "stripes",
+        lambda h, w: tx.tiles(rng, h, w, 50, 3),
+    )
     add("brick_wall", _quad([2.4, D - 0.01, H], [-2.0, 0, 0], [0, 0, -H]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "brick", h, w, (1.0, 0.62, 0.48), 256))
-    add("poster_astronaut", _quad([W - 0.01, 2.9, 2.0], [0, 1.0, 0], [0, 0, -1.0]), 0.003, "rich", lambda h, w: tx.photo("astronaut", h, w))
-    add("poster_coffee", _quad([3.2, D - 0.01, 2.3], [-0.7, 0, 0], [0, 0, -0.47]), 0.003, "rich", lambda h, w: tx.photo("coffee", h, w))
-    add("poster_chelsea", _quad([0.01, 3.8, 2.0], [0, -0.9, 0], [0, 0, -0.6]), 0.003, "rich", lambda h, w: tx.photo("chelsea", h, w))
-    add("poster_rocket", _quad([0.01, 2.5, 2.1], [0, -0.9, 0], [0, 0, -0.6]), 0.003, "rich", lambda h, w: tx.photo("rocket", h, w))
-    add("poster_hubble", _quad([0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7]), 0.003, "rich", lambda h, w: tx.photo("hubble_deep_field", h, w))
+    add(
+        "poster_astronaut",
+        _quad([W - 0.01, 2.9, 2.0], [0, 1.0, 0], [0, 0, -1.0]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo("astronaut", h, w),
+    )
+    add(
+        "poster_coffee",
+        _quad([3.2, D - 0.01, 2.3], [-0.7, 0, 0], [0, 0, -0.47]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo("coffee", h, w),
+    )
+    add(
+        "poster_chelsea",
+        _quad([0.01, 3.8, 2.0], [0, -0.9, 0], [0, 0, -0.6]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo("chelsea", h, w),
+    )
+    add(
+        "poster_rocket",
+        _quad([0.01, 2.5, 2.1], [0, -0.9, 0], [0, 0, -0.6]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo("rocket", h, w),
+    )
+    add(
+        "poster_hubble",
+        _quad([0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo("hubble_deep_field", h, w),
+    )
     add("rug", _quad([2.0, 3.7, 0.008], [2.6, 0, 0], [0, -2.0, 0]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "gravel", h, w, (0.75, 0.55, 0.5), 300))
 
@@ -202,7 +244,14 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
     box("shelf", [5.6, 1.0, 0.0], [5.98, 2.6, 2.0], 0.004, lambda f: "stripes",
         lambda f: (lambda h, w: _shelf_front(rng, h, w)) if f == "-x" else (lambda h, w: tx.planks(rng, h, w, 30)))
     # white cabinet in the north-west corner, a cardboard box on top
-    box("cabinet", [0.05, 3.6, 0.0], [0.55, 4.9, 0.9], 0.008, "weak", lambda f: (lambda h, w: tx.weak(rng, h, w, (240, 240, 236), 2.0)))
+    box(
+        "cabinet",
+        [0.05, 3.6, 0.0],
+        [0.55, 4.9, 0.9],
+        0.008,
+        "weak",
+        lambda f: lambda h, w: tx.weak(rng, h, w, (240, 240, 236), 2.0),
+    )
     cardboard = lambda f: (lambda h, w: tx.tinted(rng, "gravel", h, w, (0.85, 0.68, 0.45), 200))  # noqa: E731
     box("box_top", [0.1, 3.8, 0.9], [0.45, 4.3, 1.2], 0.004, "rich", cardboard)
     box("box_floor", [1.0, 1.0, 0.0], [1.5, 1.4, 0.4], 0.004, "rich", cardboard)
@@ -230,8 +279,15 @@ def _studio_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]
     # north wall: vertical blinds over a window, a wall of photographic tiles, a notice board
     add("blinds", _quad([0.6, D - 0.02, 2.5], [2.2, 0, 0], [0, 0, -1.9]), 0.003, "stripes",
         lambda h, w: np.transpose(tx.blinds(rng, w, h, 16), (1, 0, 2)).copy())
-    add("photo_tiles", _quad([6.4, D - 0.01, 2.2], [-2.4, 0, 0], [0, 0, -1.6]), 0.003, "rich",
-        lambda h, w: tx.photo_tiles(rng, h, w, ["immunohistochemistry", "retina", "colorwheel", "coffee", "chelsea"], 6))
+    add(
+        "photo_tiles",
+        _quad([6.4, D - 0.01, 2.2], [-2.4, 0, 0], [0, 0, -1.6]),
+        0.003,
+        "rich",
+        lambda h, w: tx.photo_tiles(
+            rng, h, w, ["immunohistochemistry", "retina", "colorwheel", "coffee", "chelsea"], 6
+        ),
+    )
     add("notice_board", _quad([0.02, 1.6, 1.9], [0, -1.0, 0], [0, 0, -0.8]), 0.002, "rich",
         lambda h, w: tx.tinted(rng, "text", h, w, (1.0, 0.97, 0.9), 240))
     add("poster_rocket", _quad([W - 0.01, 0.8, 2.1], [0, 0.8, 0], [0, 0, -1.1]), 0.003, "rich",
@@ -351,7 +407,9 @@ def _gt_mesh(surfaces: list[Surface], spacing: float) -> trimesh.Trimesh:
             col = blurred[yi, xi]
             idx = np.arange((nv + 1) * (nu + 1)).reshape(nv + 1, nu + 1) + n
             a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-            all_f.append(np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]))
+            all_f.append(
+                np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+            )
             all_v.append(p.reshape(-1, 3))
             all_c.append(col.reshape(-1, 3))
             n += p.shape[0] * p.shape[1]

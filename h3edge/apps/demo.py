@@ -61,7 +61,9 @@ class ServiceProcess:
                     return
             except OSError:
                 if time.monotonic() > end:
-                    raise TimeoutError(f"h3edge serve did not listen on {self.endpoint} within {timeout:.0f} s")
+                    raise TimeoutError(
+                        f"h3edge serve did not listen on {self.endpoint} within {timeout:.0f} s"
+                    ) from None
                 time.sleep(0.2)
 
     def client_config(self):
@@ -115,7 +117,7 @@ def wait_drained(session, keys, timeout: float = 600.0) -> dict:
 def run_demo(seq, profile: str, out: Path, rate: float = 2.0, map_id: str = "demo") -> int:
     from h3edge.config import load_profile
     from h3edge.eval.evaluate import evaluate, format_table
-    from h3edge.mapping.timing import format_timings
+    from h3edge.profiling.timing import format_timings
     from h3edge.serving.transport import Keys, open_session, publish_sequence, query, wait_for_service, write_render
 
     out = Path(out)

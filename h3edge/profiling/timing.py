@@ -17,10 +17,10 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -143,7 +143,12 @@ def format_timings(summary: dict[str, dict[str, float]], title: str = "timings",
     component that runs on some frames only (texture every 10 frames) over all mapped frames."""
     order = [c for c in PAPER_COMPONENTS + ("frame", "mesh", "render") if c in summary]
     order += sorted(set(summary) - set(order))
-    rows = [f"### {title}", "", "| component | median [ms] | p95 [ms] | count | per frame [ms] |", "|---|---|---|---|---|"]
+    rows = [
+        f"### {title}",
+        "",
+        "| component | median [ms] | p95 [ms] | count | per frame [ms] |",
+        "|---|---|---|---|---|",
+    ]
     for c in order:
         s = summary[c]
         per = f"{1000 * s['total_s'] / frames:.1f}" if frames and c in PAPER_COMPONENTS + ("frame",) else ""

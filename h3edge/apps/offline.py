@@ -22,7 +22,7 @@ from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence, write_color, write_depth
 from h3edge.mapping.mapper import FrameResult, Mapper
 from h3edge.mapping.onnx_decoders import export_decoders
-from h3edge.mapping.timing import DurationLog, format_timings
+from h3edge.profiling.timing import DurationLog, format_timings
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     (out / "timings.json").write_text(json.dumps({"frames": mapper.frames_mapped, "components": summary,
                                                   "mapping_wall_s": map_s}, indent=1) + "\n")
     (out / "timings.md").write_text(timings_md + "\n")
-    from h3edge.serving.profile_report import profile_document
+    from h3edge.profiling.report import profile_document
 
     stats = mapper.stats()
     (out / "profile.json").write_text(json.dumps(profile_document(

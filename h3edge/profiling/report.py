@@ -15,9 +15,10 @@ import json
 import platform
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
-from h3edge.mapping.timing import LABELS, PAPER_COMPONENTS
+from h3edge.profiling.timing import LABELS, PAPER_COMPONENTS
 
 ORDER = PAPER_COMPONENTS + ("frame", "ingest", "queue_wait", "association", "frame_delay", "mesh", "render",
                             "checkpoint")
@@ -56,15 +57,13 @@ def profile_document(profile_name: str, device: str, frames: int, components: di
             "memory_bytes": memory or {}, "dropped": dropped or {}, "inference": inference or {}}
 
 
-def load_document(source: str, zenoh_conf=None, map_id: str = "default", timeout: float = 10.0) -> dict:
+def load_document(source: str, live: Callable[[str], dict] | None = None, map_id: str = "default") -> dict:
     """A profile document from a run directory, a JSON file, or a live service (``zenoh:`` or
-    ``zenoh:<map-id>``, reached with ``zenoh_conf``)."""
+    ``zenoh:<map-id>``: ``live(map_id)`` fetches it, e.g. :func:`h3edge.serving.transport.fetch_profile`)."""
     if source.startswith("zenoh:"):
-        from h3edge.serving.transport import Keys, open_session, query
-
-        mid = source[len("zenoh:"):] or map_id
-        with open_session(zenoh_conf) as s:
-            return json.loads(query(s, Keys.for_map(mid).profile, timeout=timeout))
+        if live is None:
+            raise ValueError(f"{source}: a live profile needs a service connection")
+        return live(source[len("zenoh:"):] or map_id)
     p = Path(source)
     if p.is_dir():
         if (p / "profile.json").exists():

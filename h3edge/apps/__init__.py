@@ -1,0 +1,2 @@
+"""Applications on top of the service and the mapper: offline runs (``h3edge map``), the
+one-machine demo (``h3edge demo``) and the service daemon (``h3edge serve``)."""
