@@ -207,7 +207,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
     from h3edge.geometry.camera import look_at
     from h3edge.io.protocol import pose_to_json
-    from h3edge.serving.transport import Keys, RemoteError, open_session, query, write_render
+    from h3edge.serving.transport import Keys, RemoteError, open_session, query, save_render_reply
 
     keys = Keys.for_map(args.map_id or "default")
     payload = None
@@ -240,7 +240,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
     if args.what == "render":
         if not args.out:
             raise SystemExit("error: render needs --out PREFIX")
-        c, d = write_render(data, Path(args.out))
+        c, d = save_render_reply(data, Path(args.out))
         print(f"wrote {c} and {d}")
     elif args.out:
         Path(args.out).write_bytes(data)

@@ -13,7 +13,6 @@ import json
 import sys
 import typing
 from dataclasses import dataclass
-from dataclasses import field as dc_field
 from pathlib import Path
 
 if sys.version_info >= (3, 11):
@@ -41,9 +40,9 @@ class Profile(MapSettings):
     plus evaluation, service and query-inference settings."""
 
     name: str = "default"
-    eval: EvalConfig = dc_field(default_factory=EvalConfig)
-    service: ServiceConfig = dc_field(default_factory=ServiceConfig)
-    inference: InferenceConfig = dc_field(default_factory=InferenceConfig)
+    eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+    service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
+    inference: InferenceConfig = dataclasses.field(default_factory=InferenceConfig)
 
     def map_settings(self) -> MapSettings:
         return MapSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(MapSettings)})

@@ -92,7 +92,7 @@ def test_live_replay_trains_while_the_camera_is_slow_and_settles(tiny_scene):
 
 
 def test_replay_counts_survive_a_checkpoint(tiny_scene):
-    from h3edge.mapping.state import mapper_state, restore_mapper
+    from h3edge.mapping.persistence import mapper_state, restore_mapper
 
     seq = ReplicaSequence(tiny_scene)
     m = Mapper(LEAN)

@@ -14,7 +14,7 @@ from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping import mesh as mesh_mod
 from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.render import PriorLookup
+from h3edge.mapping.raymarch import PriorLookup
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap, pack, unpack
 from tests.test_mapper import LEAN
 

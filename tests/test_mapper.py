@@ -13,7 +13,7 @@ from h3edge.geometry.camera import Intrinsics, look_at, pixel_rays_world
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.render import MapRenderer, RenderConfig
+from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
 
 LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=1024, mesh_resolution=2),

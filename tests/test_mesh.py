@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from h3edge.mapping.mesh import extract_mesh, voxels_near_surface
+from h3edge.mapping.mesh import extract_mesh
+from tests.helpers import voxels_near_surface
 
 C = np.array([0.03, -0.02, 0.05])
 R = 0.37

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from h3edge.mapping.losses import depth_l1, free_space_and_sdf, rgb_l1, s3im
-from h3edge.mapping.rendering import colour_samples, composite, render_weights
+from h3edge.mapping.volume_rendering import color_samples, composite, render_weights
 
 TR = 0.05
 
@@ -51,9 +51,9 @@ def test_colour_only_where_the_weight_is_not_negligible():
     sdf = (surf - d) / TR
     mask = torch.ones_like(sdf, dtype=torch.bool)
     col = torch.rand(64, 11, 3, generator=g, dtype=torch.float64, requires_grad=True)
-    need = colour_samples(sdf, 0.05, mask, 1e-3)
+    need = color_samples(sdf, 0.05, mask, 1e-3)
     assert 0.1 < need.double().mean() < 0.5  # most band samples weigh ~0 with the paper's beta
-    assert torch.equal(colour_samples(sdf, 0.05, mask, 0.0), mask)
+    assert torch.equal(color_samples(sdf, 0.05, mask, 0.0), mask)
     full = composite(sdf, d, col, 0.05, mask)
     part = composite(sdf, d, torch.where(need[..., None], col, torch.zeros_like(col)), 0.05, mask, color_mask=need)
     assert torch.allclose(part.depth, full.depth) and torch.equal(part.hit, full.hit)

@@ -31,7 +31,7 @@ from h3edge.io.sequence import Frame
 from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.render import RenderConfig
+from h3edge.mapping.raymarch import RenderConfig
 from h3edge.mapping.voxels import VoxelConfig
 from h3edge.sim.sensor import SensorModel, degrade_depth
 

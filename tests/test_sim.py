@@ -93,7 +93,7 @@ def test_depth_matches_gt_mesh(tiny_scene):
 
 def test_texture_classes_present(layout_room):
     """Weak surfaces fall well under the paper's tr_weak = 0.2, striped and rich ones above it."""
-    from h3edge.mapping.gradient import colour_gradient
+    from h3edge.mapping.gradient import color_gradient
 
     layout, room = layout_room
     r = RoomRenderer(room)
@@ -102,7 +102,7 @@ def test_texture_classes_present(layout_room):
     for T in camera_path(40, layout)[::4]:
         rgb, depth, _ = r.render(intr, T)
         hits = r.raycaster.hits(intr, T)
-        g = colour_gradient(rgb, depth)
+        g = color_gradient(rgb, depth)
         kinds = np.array(room.surface_kinds)[room.face_surface[np.maximum(hits.prim, 0)]]
         for k in per_kind:
             per_kind[k].append(g[hits.valid & (kinds == k)])

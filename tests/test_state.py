@@ -13,7 +13,7 @@ from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.mapping.persistence import mapper_state, restore_mapper
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),

@@ -5,10 +5,11 @@ import torch
 
 from h3edge.io import open_sequence
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.rendering import composite
-from h3edge.mapping.trainer import TrainConfig, free_depths_in_voxels, rays_from_frame, sample_depths, train_step
+from h3edge.mapping.trainer import TrainConfig, free_depths_in_voxels, sample_depths, train_step
+from h3edge.mapping.volume_rendering import composite
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap
 from h3edge.sim.scene import ROOM_SIZE
+from tests.helpers import rays_from_frame
 
 
 def test_sample_depths_layout():

@@ -116,7 +116,7 @@ def test_ids_are_stable_as_the_map_grows():
 def test_dense_lookup_matches_locate_on_faces_and_inside():
     """The renderer's and mesher's fused lookup gives the training lookup's prior and inside mask,
     including lattice points on the faces of the allocated region (which ``floor`` alone misses)."""
-    from h3edge.mapping.render import PriorLookup
+    from h3edge.mapping.raymarch import PriorLookup
 
     vm = VoxelMap(VoxelConfig(min_points=3, neighbour_margin=0.4))
     vm.allocate(wall_depth(), INTR, POSE)

@@ -118,7 +118,14 @@ def run_demo(seq, profile: str, out: Path, rate: float = 2.0, map_id: str = "dem
     from h3edge.config import load_profile
     from h3edge.eval.evaluate import evaluate, format_table
     from h3edge.profiling.timing import format_timings
-    from h3edge.serving.transport import Keys, open_session, publish_sequence, query, wait_for_service, write_render
+    from h3edge.serving.transport import (
+        Keys,
+        open_session,
+        publish_sequence,
+        query,
+        save_render_reply,
+        wait_for_service,
+    )
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -153,7 +160,7 @@ def run_demo(seq, profile: str, out: Path, rate: float = 2.0, map_id: str = "dem
             t_mesh = time.perf_counter() - t
             f = seq[mid]
             t = time.perf_counter()
-            write_render(query(session, keys.render, {"pose": pose_to_json(f.pose), "width": 320, "height": 240},
+            save_render_reply(query(session, keys.render, {"pose": pose_to_json(f.pose), "width": 320, "height": 240},
                                timeout=120), out / "render_midway")
             t_render = time.perf_counter() - t
             print(f"while mapping (frame {mid} sent, {status['frames']['mapped']} mapped): status "

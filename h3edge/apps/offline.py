@@ -81,7 +81,7 @@ def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, strid
     return results
 
 
-def write_renders(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> None:
+def write_view_strips(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> None:
     out.mkdir(parents=True, exist_ok=True)
     strips = []
     for i in np.linspace(0, len(seq) - 1, min(views, len(seq))).round().astype(int):
@@ -120,7 +120,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     for name, model in export_decoders(mapper.field).items():  # what queries run, for serving from DIR
         (out / "decoders" / f"{name}.onnx").write_bytes(model)
     held = getattr(seq, "heldout", None)
-    write_renders(mapper, held if held is not None and len(held) else seq, out / "renders")
+    write_view_strips(mapper, held if held is not None and len(held) else seq, out / "renders")
     durations.flush()
     summary = mapper.timings.summary()
     timings_md = format_timings(summary, f"per-component timings ({profile.name}, {mapper.device})",

@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 def png_bomb(width: int, height: int, channels: int = 3, bits: int = 8) -> bytes:
     """A valid PNG of ``width`` x ``height`` zeros, compressed as a stream (never held decoded)."""
-    colour_type = {1: 0, 3: 2}[channels]
+    color_type = {1: 0, 3: 2}[channels]
     row = b"\x00" + bytes(width * channels * bits // 8)
     z = zlib.compressobj(9)
     idat = b"".join(z.compress(row) for _ in range(height)) + z.flush()
@@ -51,7 +51,7 @@ def png_bomb(width: int, height: int, channels: int = 3, bits: int = 8) -> bytes
     def chunk(tag: bytes, body: bytes) -> bytes:
         return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(tag + body) & 0xFFFFFFFF)
 
-    ihdr = struct.pack(">IIBBBBB", width, height, bits, colour_type, 0, 0, 0)
+    ihdr = struct.pack(">IIBBBBB", width, height, bits, color_type, 0, 0, 0)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 

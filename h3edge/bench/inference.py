@@ -22,7 +22,7 @@ from h3edge.config import load_profile
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
-from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.mapping.persistence import mapper_state, restore_mapper
 from h3edge.serving.checkpoint import read_checkpoint, write_checkpoint
 from h3edge.sim.make import PRESETS, ensure_scene
 

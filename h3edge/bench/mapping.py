@@ -1,4 +1,4 @@
-"""Benchmark: the H3 mapper vs a TSDF-fusion peer on the same frames, side by side (issue 2/6).
+"""Benchmark: the H3 mapper vs a TSDF-fusion peer on the same frames, side by side.
 
 Datasets:
 - ``sim``: the default simulated scene (400 frames 640x480, held-out views between them);

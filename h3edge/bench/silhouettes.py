@@ -29,7 +29,7 @@ from h3edge.config import apply_overrides, load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.render import PriorLookup, first_crossing
+from h3edge.mapping.raymarch import PriorLookup, first_crossing
 
 log = logging.getLogger(__name__)
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes_redkitchen_dev"
@@ -45,7 +45,7 @@ def prior_coverage(voxels) -> dict:
 
 
 @torch.no_grad()
-def dense_crossings(field_, voxels, origin: np.ndarray, dirs: np.ndarray, near: float, far: float,
+def dense_crossings(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, near: float, far: float,
                     step: float = 0.005, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
     """First + to - crossing (z-depth, -1 none) of the full SDF and of the prior alone along each
     ray, sampling every ``step`` from ``near`` to ``far`` inside allocated voxels."""
@@ -53,7 +53,7 @@ def dense_crossings(field_, voxels, origin: np.ndarray, dirs: np.ndarray, near: 
     ts = np.arange(near, far, step, dtype=np.float64)
     full_t = np.full(len(dirs), -1.0)
     prior_t = np.full(len(dirs), -1.0)
-    dev = field_.geo_grid.table.device
+    dev = neural_field.geo_grid.table.device
     for s in range(0, len(dirs), chunk):
         d = dirs[s:s + chunk].astype(np.float64)
         pts = (origin[None, None, :] + d[:, None, :] * ts[None, :, None]).reshape(-1, 3)
@@ -63,7 +63,7 @@ def dense_crossings(field_, voxels, origin: np.ndarray, dirs: np.ndarray, near: 
         full = prior.copy()
         if inside.any():
             p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
-            full[inside] += field_.sdf_mlp(field_.geo_grid(p))[:, 0].cpu().numpy()
+            full[inside] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].cpu().numpy()
         full_t[s:s + len(d)] = first_crossing(full.reshape(len(d), len(ts)), ts)
         prior_t[s:s + len(d)] = first_crossing(prior.reshape(len(d), len(ts)), ts)
     return full_t, prior_t
@@ -203,7 +203,7 @@ def mapped(seq, settings, n: int, work: Path) -> Mapper:
     settings (everything but ``render``) and sequence when ``work`` has one."""
     import hashlib
 
-    from h3edge.mapping.state import mapper_state, restore_mapper
+    from h3edge.mapping.persistence import mapper_state, restore_mapper
     from h3edge.serving.checkpoint import read_checkpoint, write_checkpoint
 
     key = {k: v for k, v in dataclasses.asdict(settings).items() if k != "render"}

@@ -24,8 +24,8 @@ from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.rendering import colour_samples
 from h3edge.mapping.trainer import sample_depths, train_step
+from h3edge.mapping.volume_rendering import color_samples
 
 log = logging.getLogger("h3edge.bench.train_step")
 
@@ -38,7 +38,7 @@ def band_share(m: Mapper, rays, floor: float) -> float:
     with torch.no_grad():
         sdf, inside = m.field.sdf(pts, m.voxels, m.voxels.locate(pts.cpu().numpy()))
     sdf, inside = sdf.reshape(len(t), -1), inside.reshape(len(t), -1)
-    return float(colour_samples(sdf, cfg.beta, inside, floor).sum() / max(int(inside.sum()), 1))
+    return float(color_samples(sdf, cfg.beta, inside, floor).sum() / max(int(inside.sum()), 1))
 
 
 def main(argv=None) -> int:

@@ -1,1 +1,2 @@
-"""Mapping core: the H3-Mapping representation, training and extraction (issues 2/6 and 3/6)."""
+"""Mapping core: the H3-Mapping representation (voxels, priors, hash grids, texture grids), its
+training and keyframes, rendering at a pose, meshes, map copies and the mapper state."""

@@ -1,4 +1,4 @@
-"""Fused numba kernels of the renderer's prior march (see :mod:`h3edge.mapping.render`).
+"""Fused numba kernels of the renderer's prior march (see :mod:`h3edge.mapping.raymarch`).
 
 Module-level so numba's on-disk cache is reused across processes (a closure recompiled, ~10 s,
 in every process: the first render of a service would have paid it).

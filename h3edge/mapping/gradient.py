@@ -14,7 +14,7 @@ import numpy as np
 _KERNEL = np.array([[1, 1, 1], [1, -8, 1], [1, 1, 1]], np.float32)
 
 
-def colour_gradient(rgb: np.ndarray, depth: np.ndarray | None = None, depth_jump: float = 0.01) -> np.ndarray:
+def color_gradient(rgb: np.ndarray, depth: np.ndarray | None = None, depth_jump: float = 0.01) -> np.ndarray:
     """Per-pixel g (H, W) float32 for uint8 RGB (H, W, 3) and optional depth (H, W) metres."""
     img = rgb.astype(np.float32) * np.float32(1.0 / 255.0)
     g = np.abs(cv2.filter2D(img, cv2.CV_32F, _KERNEL, borderType=cv2.BORDER_REPLICATE)).sum(axis=-1)

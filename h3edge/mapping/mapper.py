@@ -24,7 +24,6 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from dataclasses import field as dc_field
 
 import numpy as np
 import torch
@@ -33,14 +32,14 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.gradient import colour_gradient
+from h3edge.mapping.gradient import color_gradient
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
 from h3edge.mapping.losses import LossWeights
-from h3edge.mapping.render import MapRenderer, RenderConfig
-from h3edge.mapping.snapshot import MapView
+from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns, voxel_gradient_stats
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
+from h3edge.mapping.view import MapView
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
 from h3edge.profiling.timing import Timings
 
@@ -77,14 +76,14 @@ class MapperConfig:
 class MapSettings:
     """Everything the mapper is configured by (one profile's mapping sections)."""
 
-    mapper: MapperConfig = dc_field(default_factory=MapperConfig)
-    voxels: VoxelConfig = dc_field(default_factory=VoxelConfig)
-    field: FieldConfig = dc_field(default_factory=FieldConfig)
-    train: TrainConfig = dc_field(default_factory=TrainConfig)
-    losses: LossWeights = dc_field(default_factory=LossWeights)
-    keyframes: KeyframeConfig = dc_field(default_factory=KeyframeConfig)
-    texture: TextureConfig = dc_field(default_factory=TextureConfig)
-    render: RenderConfig = dc_field(default_factory=RenderConfig)
+    mapper: MapperConfig = dataclasses.field(default_factory=MapperConfig)
+    voxels: VoxelConfig = dataclasses.field(default_factory=VoxelConfig)
+    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
+    train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    losses: LossWeights = dataclasses.field(default_factory=LossWeights)
+    keyframes: KeyframeConfig = dataclasses.field(default_factory=KeyframeConfig)
+    texture: TextureConfig = dataclasses.field(default_factory=TextureConfig)
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
 
 
 @dataclass
@@ -94,7 +93,7 @@ class FrameResult:
     reason: str = ""  # why it was dropped
     new_voxels: int = 0
     keyframe: bool = False
-    losses: dict = dc_field(default_factory=dict)
+    losses: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclass
@@ -262,7 +261,7 @@ class Mapper:
         tex = self.settings.texture
         if tex.quasi_heterogeneous and self.frames_mapped % max(1, tex.update_interval) == 0:
             with self.timings.time("texture"):
-                grad = colour_gradient(frame.color, depth, tex.depth_jump)
+                grad = color_gradient(frame.color, depth, tex.depth_jump)
                 self.patterns.update(frame.color, depth, frame.intrinsics, pose, pts, self.voxels.locate,
                                      self.settings.voxels.voxel_size, grad)
                 self.refresh_warps()
@@ -276,7 +275,7 @@ class Mapper:
             if is_kf:
                 scores = None
                 if self.settings.keyframes.gradient_aided:  # score(v) = max(cnt^2 g, 1), cnt in pixels
-                    grad = colour_gradient(frame.color, depth, tex.depth_jump) if grad is None else grad
+                    grad = color_gradient(frame.color, depth, tex.depth_jump) if grad is None else grad
                     _, cnt, g = voxel_gradient_stats(vox, grad.reshape(-1)[sub], float(stride))
                     scores = np.maximum(cnt * cnt * g, 1.0)
                 self.keyframes.insert(frame.index, observed, scores,

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from h3edge.mapping.voxels import CORNERS, pack, unpack
+from h3edge.mapping.voxels import unpack
 
 SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) metres -> SDF (N,), any positive-outside unit
 ColorFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) -> RGB (N, 3) in [0, 1]
@@ -63,7 +63,7 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
     """Zero level set of ``sdf_fn`` inside the voxels ``voxel_keys`` (optionally cut to ``aabb``).
     ``support_fn`` / ``min_support``: a cube is meshed only where all 8 of its lattice points have
     a support of at least ``min_support`` (evidence from observations, see
-    :meth:`~h3edge.mapping.render.PriorLookup.support`), as TSDF fusion meshes only cubes whose
+    :meth:`~h3edge.mapping.raymarch.PriorLookup.support`), as TSDF fusion meshes only cubes whose
     corners all carry weight. Runs chunk by chunk (``MESH_CHUNK``); vertices on chunk faces are
     merged."""
     ijk = _region(voxel_keys, voxel_size, aabb)
@@ -85,18 +85,6 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
                                np.full((len(verts), 1), 255, np.uint8)], 1)
         mesh.visual.vertex_colors = rgba
     return mesh
-
-
-def voxels_near_surface(sdf_fn: SdfFn, bound: np.ndarray, voxel_size: float, margin: float) -> np.ndarray:
-    """Keys of voxels in ``bound`` whose corners' |SDF| (metres) stays under ``margin`` somewhere:
-    a helper for analytic tests and the TSDF peer."""
-    lo = np.floor(bound[0] / voxel_size).astype(int)
-    hi = np.ceil(bound[1] / voxel_size).astype(int)
-    ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
-    corners = (ijk[:, None, :] + CORNERS[None]) * voxel_size
-    d = sdf_fn(corners.reshape(-1, 3)).reshape(-1, 8)
-    near = (d.min(1) < margin) & (d.max(1) > -margin)
-    return np.sort(pack(ijk[near]))
 
 
 def _merge_chunk_faces(verts: np.ndarray, faces: np.ndarray, chunk: float, tol: float

@@ -6,7 +6,7 @@ serving map re-exports whenever a query takes a new snapshot; writing the graph 
 carries the same operators. Parity with PyTorch is tested (max |error| <= 1e-4).
 
 :class:`OrtMLP` is an ``nn.Module`` whose forward runs an onnxruntime session (inputs and outputs
-go through host memory), so a frozen :class:`~h3edge.mapping.snapshot.MapView` can swap its
+go through host memory), so a frozen :class:`~h3edge.mapping.view.MapView` can swap its
 decoders for exported ones and every query path (mesh, render) uses them unchanged.
 
 :class:`DecoderRuntime` owns the sessions of a process (one per decoder architecture): the

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping.gradient import colour_gradient
+from h3edge.mapping.gradient import color_gradient
 
 PLAIN, WEAK, RICH = 0, 1, 2
 CLASS_NAMES = {PLAIN: "unstructured rich", WEAK: "weak", RICH: "rich with low-frequency directions"}
@@ -218,7 +218,6 @@ class TexturePatterns:
         self.CNT = np.zeros(0)
         self._detector: LineDetector | None = None
         self.updates = 0
-        self.last_lines = 0  # valid 3D segments in the last update
 
     def __len__(self) -> int:
         return len(self.G)
@@ -278,7 +277,7 @@ class TexturePatterns:
         ``locate(points) -> (voxel ids, ...)`` maps points to allocated voxels; ``g``: the
         per-pixel colour gradient when the caller already has it."""
         cfg = self.cfg
-        g = colour_gradient(rgb, depth, cfg.depth_jump) if g is None else g
+        g = color_gradient(rgb, depth, cfg.depth_jump) if g is None else g
         s = max(1, cfg.stride)
         sub = (slice(None, None, s), slice(None, None, s))
         valid = depth[sub] > 0
@@ -299,7 +298,6 @@ class TexturePatterns:
                 for ids_n, dir_n, w_n in fuse_frame_directions(vx, d[seg], w[seg], cfg.max_directions, cfg.tr_near):
                     self.fuse_directions(ids_n, dir_n, w_n)
         self.updates += 1
-        self.last_lines = lines
         return {"lines": lines, "voxels_seen": len(ids)}
 
     # ----------------------------------------------------------------- classes

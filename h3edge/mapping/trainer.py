@@ -22,7 +22,7 @@ import torch
 
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
-from h3edge.mapping.rendering import colour_samples, composite
+from h3edge.mapping.volume_rendering import color_samples, composite
 from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
 
@@ -72,7 +72,7 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     inside allocated voxels where the ray has enough of them: picked at random among
     ``cfg.free_candidates`` stratified candidates that fall in a voxel (rays with fewer keep some
     candidates outside, which the voxel mask drops)."""
-    from h3edge.mapping.render import PriorLookup
+    from h3edge.mapping.raymarch import PriorLookup
 
     depth = rays.depth
     r, m, k = len(depth), cfg.free_candidates, cfg.free_samples
@@ -88,7 +88,7 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     return torch.sort(cand.gather(1, pick), dim=1).values
 
 
-def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
+def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
                cfg: TrainConfig, generator: torch.Generator | None = None,
                prior_opt: PriorAdam | None = None) -> dict[str, float]:
     """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
@@ -101,14 +101,14 @@ def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
     flat = pts.reshape(-1, 3)
     vox, frac = voxels.locate(flat.detach().cpu().numpy())
-    sdf, inside = field_.sdf(flat, voxels, (vox, frac))
+    sdf, inside = neural_field.sdf(flat, voxels, (vox, frac))
     sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
     band_pts = pts[:, b0:].reshape(-1, 3)
     band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
-    need = colour_samples(sdf[:, b0:], cfg.beta, inside[:, b0:], cfg.color_weight_floor)
+    need = color_samples(sdf[:, b0:], cfg.beta, inside[:, b0:], cfg.color_weight_floor)
     band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
     col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
-        0, band_in, field_.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
+        0, band_in, neural_field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
     out = composite(sdf[:, b0:], t[:, b0:], col, cfg.beta, inside[:, b0:], color_mask=need)
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
     order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
@@ -127,21 +127,6 @@ def train_step(field_: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch
     optimizer.step()
     if prior_opt is not None:
         prior_opt.step(voxels)
-    field_.sparse_step(cfg.lr)
+    neural_field.sparse_step(cfg.lr)
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
             "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean())}
-
-
-def rays_from_frame(frame, pixels: torch.Tensor, device="cpu") -> RayBatch:
-    """Rays through the given flat pixel indices of a :class:`~h3edge.io.sequence.Frame`."""
-    from h3edge.geometry.camera import pixel_rays_camera
-
-    intr = frame.intrinsics
-    pix = pixels.cpu().numpy()
-    cam = pixel_rays_camera(intr).reshape(-1, 3)[pix]
-    R = frame.pose[:3, :3]
-    dirs = torch.from_numpy((cam @ R.T).astype("float32"))
-    o = torch.from_numpy(frame.pose[:3, 3].astype("float32")).expand(len(pix), 3)
-    depth = torch.from_numpy(frame.depth.reshape(-1)[pix].astype("float32"))
-    color = torch.from_numpy(frame.color.reshape(-1, 3)[pix].astype("float32") / 255.0)
-    return RayBatch(o.to(device), dirs.to(device), depth.to(device), color.to(device))

@@ -55,8 +55,8 @@ from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import RAY_TABLES, Mapper, MapSettings
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
-from h3edge.mapping.snapshot import MapView
-from h3edge.mapping.state import mapper_state, restore_mapper
+from h3edge.mapping.persistence import mapper_state, restore_mapper
+from h3edge.mapping.view import MapView
 from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
 from h3edge.serving.checkpoint import (

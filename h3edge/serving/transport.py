@@ -199,7 +199,7 @@ class ZenohServer:
 
 
 # ------------------------------------------------------------------------------------ client
-def write_render(data: bytes, out: Path) -> tuple[Path, Path]:
+def save_render_reply(data: bytes, out: Path) -> tuple[Path, Path]:
     """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
     from h3edge.io.protocol import decode_frame
     from h3edge.io.sequence import write_color, write_depth

@@ -19,7 +19,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.field import Field
 from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.onnx_decoders import DecoderRuntime
-from h3edge.mapping.render import MapRenderer, PriorLookup, RenderConfig
+from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig
 from h3edge.mapping.voxels import VoxelMap
 
 

@@ -26,7 +26,6 @@ def render_weights(sdf: torch.Tensor, beta: float, mask: torch.Tensor | None = N
 class RenderedRays:
     depth: torch.Tensor  # (R,)
     color: torch.Tensor  # (R, 3)
-    weight_sum: torch.Tensor  # (R,)
     hit: torch.Tensor  # (R,) bool
 
 
@@ -37,7 +36,7 @@ def composite(sdf: torch.Tensor, depth: torch.Tensor, color: torch.Tensor | None
 
     ``color_mask`` (R, S): the samples whose colour was evaluated (a subset of ``mask``); the colour
     is normalised over their weights alone, so skipping samples of negligible weight does not darken
-    the ray (see :func:`colour_samples`)."""
+    the ray (see :func:`color_samples`)."""
     a = render_weights(sdf, beta, mask)
     wsum = a.sum(-1)
     hit = wsum > min_weight
@@ -48,10 +47,10 @@ def composite(sdf: torch.Tensor, depth: torch.Tensor, color: torch.Tensor | None
     else:  # normalised over the weights of the samples whose colour is known (all of them by default)
         ac, csum = (a, norm) if color_mask is None else (a * color_mask, (a * color_mask).sum(-1))
         c = (ac[..., None] * color).sum(-2) / torch.where(csum > 0, csum, torch.ones_like(csum))[:, None] * hit[:, None]
-    return RenderedRays(d, c, wsum, hit)
+    return RenderedRays(d, c, hit)
 
 
-def colour_samples(sdf: torch.Tensor, beta: float, mask: torch.Tensor, floor: float) -> torch.Tensor:
+def color_samples(sdf: torch.Tensor, beta: float, mask: torch.Tensor, floor: float) -> torch.Tensor:
     """Samples (R, S) worth evaluating colour at: inside ``mask`` with a normalised weight
     alpha_j / sum_k alpha_k above ``floor`` (all of ``mask`` for floor 0). With the paper's beta the
     weight sits within a few mm of the zero crossing, so on 1 cm band samples most weigh ~0."""

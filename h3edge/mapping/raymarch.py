@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics, pixel_rays_world
-from h3edge.mapping.rendering import composite
+from h3edge.mapping.volume_rendering import composite
 
 
 @dataclass(frozen=True)
@@ -123,12 +123,12 @@ class PriorLookup:
 
 
 @torch.no_grad()
-def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: float, cfg: RenderConfig
+def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, beta: float, cfg: RenderConfig
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray whose
     prior crossing gets no rendering weight (the residual moved the surface away from it) marches
     on past that window, up to ``cfg.retries`` times."""
-    dev = field_.geo_grid.table.device
+    dev = neural_field.geo_grid.table.device
     n = len(dirs)
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
@@ -136,7 +136,7 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
     lookup = PriorLookup(voxels)
     todo = np.flatnonzero(t_hit > 0)
     for attempt in range(cfg.retries + 1):
-        missed = _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
+        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:
             break
         t_new = prior_crossings(origin, dirs[missed], voxels, cfg,
@@ -147,15 +147,15 @@ def render_rays(field_, voxels, origin: np.ndarray, dirs: np.ndarray, beta: floa
         # every ray still empty: no prior crossing at all, or none that carried weight
         empty = np.flatnonzero(depth == 0)
         if len(empty):
-            t_hit[empty] = field_crossings(field_, lookup, origin, dirs[empty], cfg, dev)
+            t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], cfg, dev)
             found = empty[t_hit[empty] > 0]
             if len(found):
-                _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, found, beta, cfg, dev, depth, color)
+                _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, beta, cfg, dev, depth, color)
     return color, depth
 
 
 @torch.no_grad()
-def field_crossings(field_, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig, dev
+def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig, dev
                     ) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
     ray, sampled every ``cfg.fallback_step`` through the allocated voxels between near and far; only
@@ -172,7 +172,7 @@ def field_crossings(field_, lookup: PriorLookup, origin: np.ndarray, dirs: np.nd
             continue
         sdf = np.full(len(pts), np.nan)
         p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
-        sdf[inside] = prior[inside] + field_.sdf_mlp(field_.geo_grid(p))[:, 0].float().cpu().numpy()
+        sdf[inside] = prior[inside] + neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
         out[s:s + len(d)] = first_crossing(sdf.reshape(len(d), len(ts)), ts)
     return out
 
@@ -190,7 +190,7 @@ def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, dev, depth, color) -> np.ndarray:
+def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, dev, depth, color) -> np.ndarray:
     """Render ``rays`` around their crossings into ``depth`` / ``color``; returns the rays without weight."""
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
     o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
@@ -201,12 +201,12 @@ def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, de
         t = torch.from_numpy(t_hit[idx].astype(np.float32)).to(dev)[:, None] + cfg.fine_step * offs[None]
         pts = (o + d[:, None, :] * t[..., None]).reshape(-1, 3)
         prior, vox = lookup(pts.cpu().numpy())
-        sdf, inside = field_.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
+        sdf, inside = neural_field.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
                                                      torch.from_numpy(vox >= 0).to(dev)))
         out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape), cfg.min_weight)
         hit = out.hit
         surf = o + d[hit] * out.depth[hit, None]
-        col = field_.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
+        col = neural_field.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
         hit_np = hit.cpu().numpy()
         depth[idx[hit_np]] = out.depth[hit].cpu().numpy()
         color[idx[hit_np]] = col.float().cpu().numpy()
@@ -217,8 +217,8 @@ def _fine_stage(field_, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, de
 class MapRenderer:
     """:class:`~h3edge.eval.evaluate.ViewRenderer` over a field and its voxel map."""
 
-    def __init__(self, field_, voxels, beta: float, cfg: RenderConfig = RenderConfig()):
-        self.field, self.voxels, self.beta, self.cfg = field_, voxels, beta, cfg
+    def __init__(self, neural_field, voxels, beta: float, cfg: RenderConfig = RenderConfig()):
+        self.field, self.voxels, self.beta, self.cfg = neural_field, voxels, beta, cfg
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colour uint8 (H, W, 3) and z-depth float32 (H, W) metres, 0 where nothing is mapped."""
