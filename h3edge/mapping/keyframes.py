@@ -20,6 +20,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from h3edge.mapping.texture_patterns import voxel_gradient_stats
+
+
+def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:
+    """H3's gradient-aided voxel scores max(cnt^2 g, 1) for the voxels of points sampled every
+    ``stride``-th valid pixel: ``vox`` their voxel ids (-1 outside), ``gradient`` their colour
+    gradients; cnt counts pixels (samples times ``stride``), g is the voxel's mean gradient. One
+    score per voxel, in the order of ``np.unique(vox[vox >= 0])``."""
+    _, cnt, g = voxel_gradient_stats(vox, gradient, float(stride))
+    return np.maximum(cnt * cnt * g, 1.0)
+
 
 @dataclass(frozen=True)
 class KeyframeConfig:

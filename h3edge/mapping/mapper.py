@@ -33,11 +33,11 @@ from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, r
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.gradient import color_gradient
-from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet
+from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, gradient_scores
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
-from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns, voxel_gradient_stats
+from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
 from h3edge.mapping.view import MapView
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
@@ -233,64 +233,78 @@ class Mapper:
 
     # ------------------------------------------------------------------ frame
     def process(self, frame: Frame, read_seconds: float = 0.0) -> FrameResult:
-        """Map one frame. ``read_seconds``: the caller's reading / decoding time, added to ``read``."""
+        """Map one frame: check it, allocate voxels and their priors, determine texture patterns,
+        update the keyframe set, train. ``read_seconds``: the caller's reading / decoding time,
+        added to ``read``. A dropped frame changes nothing in the map."""
         t_frame = time.perf_counter()
-        t0 = time.perf_counter()
         code, reason = self.check_frame(frame)
         if code:
             return self._drop(frame, code, reason)
-        depth = self.clean_depth(frame.depth)
-        pose = np.asarray(frame.pose, np.float64)
-        pts = backproject(depth, frame.intrinsics, pose)
-        valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
-        if len(valid) < self.cfg.min_valid_fraction * depth.size:
-            return self._drop(frame, "no_depth", f"too little valid depth ({len(valid)} of {depth.size} pixels)")
-        current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid)
-        self.timings.add("read", time.perf_counter() - t0 + read_seconds)
-
+        current, pts = self._prepare(frame)
+        if len(current.pix) < self.cfg.min_valid_fraction * current.depth.size:
+            return self._drop(frame, "no_depth", f"too little valid depth ({len(current.pix)} of "
+                                                 f"{current.depth.size} pixels)")
+        self.timings.add("read", time.perf_counter() - t_frame + read_seconds)
         with self.timings.time("priors"):
-            new = self.voxels.allocate(depth, frame.intrinsics, pose, points=pts)
+            new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
         if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
             return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
         if self.field is None:  # the first frame that maps places the grids' reference cube
-            c = pose[:3, 3]
-            self.bound = np.stack([c - self.cfg.extent / 2, c + self.cfg.extent / 2])
-            self._build_field()
-
-        grad = None
-        tex = self.settings.texture
-        if tex.quasi_heterogeneous and self.frames_mapped % max(1, tex.update_interval) == 0:
-            with self.timings.time("texture"):
-                grad = color_gradient(frame.color, depth, tex.depth_jump)
-                self.patterns.update(frame.color, depth, frame.intrinsics, pose, pts, self.voxels.locate,
-                                     self.settings.voxels.voxel_size, grad)
-                self.refresh_warps()
-
+            self._place_field(current.pose[:3, 3])
+        grad = self._determine_texture(current, pts)
         with self.timings.time("keyframes"):
-            stride = self.cfg.observe_stride
-            sub = valid[::stride]
-            vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
-            observed = np.unique(vox[vox >= 0])
-            is_kf = self.keyframes.should_insert(observed)
-            if is_kf:
-                scores = None
-                if self.settings.keyframes.gradient_aided:  # score(v) = max(cnt^2 g, 1), cnt in pixels
-                    grad = color_gradient(frame.color, depth, tex.depth_jump) if grad is None else grad
-                    _, cnt, g = voxel_gradient_stats(vox, grad.reshape(-1)[sub], float(stride))
-                    scores = np.maximum(cnt * cnt * g, 1.0)
-                self.keyframes.insert(frame.index, observed, scores,
-                                       payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
+            is_kf = self._update_keyframes(frame.index, current, pts, grad)
             picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
-
         losses: dict = {}
         with self.timings.time("training"):
             for kfs in picks:
-                rays = self._sample_rays([current] + [k.payload for k in kfs])
-                losses = self._step(rays, "frame")
+                losses = self._step(self._sample_rays([current] + [k.payload for k in kfs]), "frame")
         self.frames_mapped += 1
         self.last_timestamp = frame.timestamp
         self.timings.add("frame", time.perf_counter() - t_frame + read_seconds)
         return FrameResult(frame.index, True, new_voxels=len(new), keyframe=is_kf, losses=losses)
+
+    def _prepare(self, frame: Frame) -> tuple[ImageFrame, np.ndarray]:
+        """The frame with cleaned depth and its valid pixels, and its world points (H, W, 3)."""
+        depth = self.clean_depth(frame.depth)
+        pose = np.asarray(frame.pose, np.float64)
+        valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
+        return ImageFrame(frame.color, depth, pose, frame.intrinsics, valid), backproject(depth, frame.intrinsics, pose)
+
+    def _place_field(self, centre: np.ndarray) -> None:
+        self.bound = np.stack([centre - self.cfg.extent / 2, centre + self.cfg.extent / 2])
+        self._build_field()
+
+    def _determine_texture(self, current: ImageFrame, pts: np.ndarray) -> np.ndarray | None:
+        """Texture patterns every ``update_interval`` frames (H3); the colour gradient image when
+        it was computed (the keyframe score reuses it)."""
+        tex = self.settings.texture
+        if not tex.quasi_heterogeneous or self.frames_mapped % max(1, tex.update_interval):
+            return None
+        with self.timings.time("texture"):
+            grad = color_gradient(current.color, current.depth, tex.depth_jump)
+            self.patterns.update(current.color, current.depth, current.intrinsics, current.pose, pts,
+                                 self.voxels.locate, self.settings.voxels.voxel_size, grad)
+            self.refresh_warps()
+        return grad
+
+    def _update_keyframes(self, frame_id: int, current: ImageFrame, pts: np.ndarray, grad: np.ndarray | None) -> bool:
+        """Insert the frame as a keyframe when the coverage rule says so (scored per voxel by the
+        colour gradient with ``gradient_aided``); whether it was."""
+        stride = self.cfg.observe_stride
+        sub = current.pix[::stride]
+        vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
+        observed = np.unique(vox[vox >= 0])
+        if not self.keyframes.should_insert(observed):
+            return False
+        scores = None
+        if self.settings.keyframes.gradient_aided:
+            if grad is None:
+                grad = color_gradient(current.color, current.depth, self.settings.texture.depth_jump)
+            scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
+        self.keyframes.insert(frame_id, observed, scores,
+                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
+        return True
 
     def train_between_frames(self) -> dict | None:
         """One optimisation step on the keyframes the coverage rule selects, without a current
