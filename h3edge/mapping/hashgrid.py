@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from h3edge.mapping.sparse_adam import lazy_adam_rows
+
 PRIMES = (1, 2654435761, 805459861)
 
 
@@ -255,11 +257,7 @@ class HashGrid(torch.nn.Module):
             self._kernels()[3](self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), rows.numpy(),
                                g.numpy(), lr, b1, b2, eps, c1, c2)
             return len(rows)
-        m = self.adam_m[rows].mul_(b1).add_(g, alpha=1 - b1)
-        v = self.adam_v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
-        self.adam_m[rows] = m
-        self.adam_v[rows] = v
-        self.table[rows] -= lr * (m / c1) / ((v / c2).sqrt() + eps)
+        lazy_adam_rows(self.table, self.adam_m, self.adam_v, rows, g, self.adam_steps, lr, betas, eps)
         return len(rows)
 
 

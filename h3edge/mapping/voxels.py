@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics, backproject, project
+from h3edge.mapping.sparse_adam import lazy_adam_rows
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
@@ -342,7 +343,8 @@ class VoxelTable:
 
 
 class PriorAdam:
-    """Lazy Adam for the SDF priors: updates only vertices with a gradient, and keeps its state
+    """Lazy Adam (:mod:`h3edge.mapping.sparse_adam`) for the SDF priors: updates only vertices
+    with a gradient, and keeps its state
     when :class:`VoxelMap` grows the prior tensor (state is padded, ids are stable)."""
 
     def __init__(self, lr: float = 1e-2, betas=(0.9, 0.999), eps: float = 1e-15):
@@ -366,10 +368,5 @@ class PriorAdam:
         if len(rows) == 0:
             return 0
         self.steps += 1
-        b1, b2 = self.betas
-        gr = g[rows]
-        m = self.m[rows].mul_(b1).add_(gr, alpha=1 - b1)
-        v = self.v[rows].mul_(b2).addcmul_(gr, gr, value=1 - b2)
-        self.m[rows], self.v[rows] = m, v
-        p[rows] -= self.lr * (m / (1 - b1 ** self.steps)) / ((v / (1 - b2 ** self.steps)).sqrt() + self.eps)
+        lazy_adam_rows(p, self.m, self.v, rows, g[rows], self.steps, self.lr, self.betas, self.eps)
         return len(rows)
