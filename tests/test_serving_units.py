@@ -530,3 +530,34 @@ def test_hostile_json_is_malformed_not_an_internal_error(payload):
     frame = b"H3FR" + len(payload).to_bytes(4, "little") + payload
     with pytest.raises(ProtocolError):  # too long a header, or not JSON
         decode_frame(frame)
+
+
+@pytest.mark.parametrize("request_, match", [
+    ({"format": "stl"}, "format"), ({"resolution": "Infinity"}, "mesh request"), ({"resolution": 0}, "1..10"),
+    ({"aabb": "1,2,3"}, "6 numbers"), ({"aabb": [[0, 0, 0], [0, 1, 1]]}, "min < max"), ({"size": 3}, "unknown"),
+    ("not an object", "JSON object"),
+])
+def test_mesh_requests_are_parsed_and_bounded_at_the_edge(request_, match):
+    from h3edge.errors import QueryError
+    from h3edge.serving.queries import MeshRequest
+
+    with pytest.raises(QueryError, match=match):
+        MeshRequest.parse(request_, 5, 10)
+    ok = MeshRequest.parse({"format": "glb", "resolution": "4", "aabb": "0,0,0,1,2,3"}, 5, 10)
+    assert ok.format == "glb" and ok.resolution == 4 and ok.aabb.tolist() == [[0, 0, 0], [1, 2, 3]]
+    assert MeshRequest.parse({}, 5, 10).resolution == 5
+
+
+def test_render_requests_are_parsed_and_bounded_at_the_edge():
+    from h3edge.errors import QueryError
+    from h3edge.serving.queries import RenderRequest
+
+    pose = {"t": [0, 0, 0], "q": [0, 0, 0, 1]}
+    r = RenderRequest.parse({"pose": pose, "width": 64, "height": 48, "fov_deg": 90}, 10_000)
+    assert (r.intrinsics.width, r.intrinsics.height) == (64, 48) and r.intrinsics.fx == pytest.approx(32)
+    for bad, match in (({"pose": pose, "width": 1228800, "height": 1}, "1..16384"),
+                       ({"pose": pose, "width": 200, "height": 100}, "cap"), ({"width": 8, "height": 8}, "needs"),
+                       ({"pose": pose, "width": 8, "height": 8, "fov_deg": 179}, "fov_deg"),
+                       ({"pose": pose, "extra": 1}, "unknown")):
+        with pytest.raises(QueryError, match=match):
+            RenderRequest.parse(bad, 10_000)

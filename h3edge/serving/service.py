@@ -41,7 +41,6 @@ import numpy as np
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import (
-    MAX_SIDE,
     FrameMessage,
     FrameTooLarge,
     ProtocolError,
@@ -49,7 +48,6 @@ from h3edge.io.protocol import (
     decode_frame,
     decode_pose,
     encode_frame,
-    pose_from_json,
 )
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import RAY_TABLES, Mapper, MapSettings
@@ -68,6 +66,7 @@ from h3edge.serving.checkpoint import (
     remove_leftovers,
     write_checkpoint,
 )
+from h3edge.serving.queries import MeshRequest, RenderRequest
 
 log = logging.getLogger(__name__)
 
@@ -625,17 +624,10 @@ class MapService:
                                       frames=n)
         return doc
 
-    def mesh(self, fmt: str = "ply", resolution: int | None = None, aabb: list | None = None) -> bytes:
-        if fmt not in ("ply", "glb", "obj"):
-            raise QueryError(f"format must be ply, glb or obj, got {fmt!r}")
-        res = resolution or self.settings.mapper.mesh_resolution
-        if not 1 <= res <= self.cfg.max_mesh_resolution:
-            raise QueryError(f"resolution must be 1..{self.cfg.max_mesh_resolution} cells per voxel, got {res}")
-        box = None
-        if aabb is not None:
-            box = np.asarray(aabb, np.float64)
-            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
-                raise QueryError("aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
+    def mesh(self, request: MeshRequest) -> bytes:
+        """The mesh file of the map (or of ``request.aabb``), refused when its scratch would exceed
+        the query budget."""
+        res, box, fmt = request.resolution, request.aabb, request.format
         view = self.view()
         need = working_bytes(view.voxels.voxel_keys, view.voxel_size, res, box)
         if need > self.plan["query_working_set"]:
@@ -649,40 +641,12 @@ class MapService:
             raise QueryError("the map has no surface yet" + (" inside that aabb" if box is not None else ""))
         return mesh.export(file_type=fmt)
 
-    def render(self, request: dict) -> bytes:
+    def render(self, request: RenderRequest) -> bytes:
         """A frame message (PNG colour, 16-bit PNG depth in mm, the pose) rendered at a pose."""
-        if not isinstance(request, dict):
-            raise QueryError("render request must be a JSON object")
-        unknown = set(request) - {"pose", "width", "height", "intrinsics", "fov_deg", "raw"}
-        if unknown:
-            raise QueryError(f"render request: unknown field(s) {', '.join(sorted(unknown))}")
-        try:
-            w, h = int(request.get("width", 320)), int(request.get("height", 240))
-        except (TypeError, ValueError):
-            raise QueryError("width and height must be integers") from None
-        if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
-            raise QueryError(f"width and height must be in 1..{MAX_SIDE}, got {w}x{h}")
-        if w * h > self.cfg.max_render_pixels:
-            raise QueryError(f"{w}x{h} = {w * h} pixels exceeds this service's cap of {self.cfg.max_render_pixels}")
-        if "pose" not in request or not isinstance(request["pose"], dict):
-            raise QueryError('render request needs "pose": {"t": [...], "q": [x, y, z, w]} or {"matrix": [16]}')
-        try:
-            pose = pose_from_json(request["pose"], "pose")
-            if "intrinsics" in request:
-                k = request["intrinsics"]
-                intr = Intrinsics(w, h, float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]))
-            else:
-                fov = float(request.get("fov_deg", 80.0))
-                if not 1.0 <= fov <= 170.0:
-                    raise QueryError("fov_deg must be in [1, 170]")
-                f = (w / 2) / np.tan(np.radians(fov) / 2)
-                intr = Intrinsics(w, h, f, f, w / 2, h / 2)
-        except (ProtocolError, KeyError, TypeError, ValueError) as e:
-            raise QueryError(f"render request: {e}") from None
+        intr, pose, raw = request.intrinsics, request.pose, request.raw
         view = self.view()
         t0 = time.perf_counter()
         rgb, depth = view.render(intr, pose)
         self.mapper.timings.add("render", time.perf_counter() - t0)
-        raw = bool(request.get("raw", False))
         msg = FrameMessage(int(time.time() * 1e9), view.frames_mapped, rgb, depth, intr, pose, "render")
         return encode_frame(msg, "raw_rgb8" if raw else "png", "raw_f32" if raw else "png16", 1000.0)

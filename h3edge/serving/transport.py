@@ -26,6 +26,7 @@ import zenoh
 
 from h3edge.errors import QueryError
 from h3edge.io.protocol import check_map_id
+from h3edge.serving.queries import MESH_FORMATS, MeshRequest, RenderRequest
 
 log = logging.getLogger(__name__)
 
@@ -161,26 +162,13 @@ class ZenohServer:
         return json.dumps(self.service.profile()).encode(), zenoh.Encoding.APPLICATION_JSON
 
     def _mesh(self, query):
-        req = self._request(query)
-        unknown = set(req) - {"format", "resolution", "aabb"}
-        if unknown:
-            raise QueryError(f"mesh request: unknown field(s) {', '.join(sorted(unknown))}")
-        aabb = req.get("aabb")
-        try:
-            if isinstance(aabb, str):
-                v = [float(x) for x in aabb.split(",")]
-                if len(v) != 6:
-                    raise ValueError("aabb needs 6 numbers")
-                aabb = [v[:3], v[3:]]
-            res = int(req["resolution"]) if "resolution" in req else None
-        except (ValueError, TypeError, OverflowError) as e:
-            raise QueryError(f"mesh request: {e}") from None
-        fmt = str(req.get("format", "ply"))
-        data = self.service.mesh(fmt, res, aabb)
-        return data, zenoh.Encoding("model/" + {"ply": "ply", "glb": "gltf-binary", "obj": "obj"}[fmt])
+        svc = self.service
+        req = MeshRequest.parse(self._request(query), svc.settings.mapper.mesh_resolution, svc.cfg.max_mesh_resolution)
+        return svc.mesh(req), zenoh.Encoding("model/" + MESH_FORMATS[req.format])
 
     def _render(self, query):
-        return self.service.render(self._request(query)), zenoh.Encoding.APPLICATION_OCTET_STREAM
+        req = RenderRequest.parse(self._request(query), self.service.cfg.max_render_pixels)
+        return self.service.render(req), zenoh.Encoding.APPLICATION_OCTET_STREAM
 
     def _save(self, query):
         if str(query.key_expr) != self.keys.save:  # a wildcard query must not write a checkpoint
