@@ -5,7 +5,7 @@ from h3edge.config import PROFILES_DIR, ProfileError, load_profile
 
 @pytest.mark.parametrize("path", sorted(PROFILES_DIR.glob("*.toml")), ids=lambda p: p.stem)
 def test_every_profile_loads(path):
-    from h3edge.serving.service import keyframe_bytes, memory_plan
+    from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 
     prof = load_profile(path)
     assert prof.name == path.stem

@@ -26,7 +26,7 @@ from h3edge.io.protocol import (
 )
 from h3edge.serving.association import PoseBuffer
 from h3edge.serving.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from h3edge.serving.service import keyframe_bytes, memory_plan
+from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.systemd import Notifier
 
 INTR = Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)

@@ -1,0 +1,47 @@
+"""The service's memory plan: the byte budget split up front into the hash tables, the voxel cap,
+a query's map copy and scratch, the checkpoint capture, the largest admitted frame's buffers, and
+what is left for keyframes (which sets the keyframe cap)."""
+
+from __future__ import annotations
+
+from h3edge.mapping.mapper import RAY_TABLES, MapSettings
+
+# Peak bytes per pixel of decoding and mapping one frame beyond the ray table (decoded images,
+# cleaned depth, back-projected points, texture-pattern images, keyframe payload), measured with
+# python -m h3edge.bench.frame_memory: +253 MB at 1920x1080, +1638 MB at 4096x3072 (128-136 B/px,
+# docs/bench_frame_memory.md), rounded up.
+FRAME_SCRATCH_BYTES_PER_PIXEL = 144
+RAY_TABLE_BYTES_PER_PIXEL = 12  # float32 (x, y, z) per pixel, RAY_TABLES of them kept
+ENCODED_BYTES_PER_PIXEL = 7  # the largest encodings: raw_rgb8 + raw_f32
+
+
+def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, frame_pixels: int = 1920 * 1080,
+                ingest_queue: int = 2) -> dict:
+    """Split the byte budget: fixed parts first, keyframes get what is left (at least 8).
+    ``frame_pixels``: the largest frame admitted (``max_frame_pixels``): its decode and mapping
+    scratch, the ray tables of a few cameras that size, and the queued encoded frames."""
+    f = settings.field
+    tables = 0
+    for log2, levels, feats in ((f.geo_log2_table, f.geo_levels, f.geo_features),
+                                (f.tex_log2_table, f.tex_levels, f.tex_features)):
+        rows = levels * (1 << log2)
+        tables += rows * feats * 4 * 4 + rows  # table, Adam m, v, gradient scratch; touched flags
+    per_voxel = 360  # keys + index + 8 vertex ids + ~1.5 vertices (key, prior, Adam) + texture state + warps
+    voxels = settings.voxels.max_voxels * per_voxel
+    snapshot = tables // 4 + voxels // 2  # a query's frozen copy: the tables and the voxel map
+    budget = int(budget_mb) << 20
+    working = max(64 << 20, budget * 15 // 100)  # scratch of one mesh / render query (meshes above it are refused)
+    checkpoint = tables * 3 // 4 + voxels // 2  # the state captured for the checkpoint writer
+    frames = frame_pixels * (FRAME_SCRATCH_BYTES_PER_PIXEL + RAY_TABLES * RAY_TABLE_BYTES_PER_PIXEL
+                             + (ingest_queue + 1) * ENCODED_BYTES_PER_PIXEL)
+    left = budget - tables - voxels - snapshot - working - checkpoint - frames
+    cap = max(8, left // max(1, keyframe_bytes))
+    return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
+            "query_working_set": working, "checkpoint_capture": checkpoint, "frame_buffers": frames,
+            "keyframes": max(0, left),
+            "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap), "fits": left >= 8 * keyframe_bytes}
+
+
+def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
+    n = settings.keyframes.stored_pixels or frame_pixels
+    return n * (4 + 3 + 4) + 4096  # pixel index, RGB, depth; voxel ids and scores
