@@ -19,9 +19,10 @@ frame (no lock, no wait).
 Checkpoints: every ``checkpoint_interval_s``, on ``save`` and on stop. The mapper thread captures
 the state between frames; a writer thread writes it atomically (:mod:`h3edge.serving.checkpoint`).
 
-Memory budget: ``memory_budget_mb`` is split up front (:func:`h3edge.serving.memory_plan.memory_plan`): hash tables and their
-optimiser state, the voxel map at its cap, a reserve for query snapshots, and what is left for
-keyframes, which sets the keyframe cap (keyframes hold a random subset of their pixels).
+Memory budget: ``memory_budget_mb`` is split up front (:mod:`h3edge.serving.memory_plan`): hash
+tables and their optimiser state, the voxel map at its cap, a reserve for query snapshots, the
+largest admitted frame's buffers, and what is left for keyframes, which sets the keyframe cap
+(keyframes hold a random subset of their pixels).
 """
 
 from __future__ import annotations
