@@ -100,7 +100,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     profile = load_profile(args.profile)
     if args.device:
-        profile = dataclasses.replace(profile, mapper=dataclasses.replace(profile.mapper, device=args.device))
+        profile = profile.with_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     seq = open_sequence(args.sequence)
@@ -144,7 +144,7 @@ def _profile_with_overrides(args: argparse.Namespace):
     if svc:
         profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, **svc))
     if getattr(args, "device", None):
-        profile = dataclasses.replace(profile, mapper=dataclasses.replace(profile.mapper, device=args.device))
+        profile = profile.with_device(args.device)
     return profile
 
 

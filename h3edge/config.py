@@ -35,17 +35,24 @@ class ProfileError(InputError):
 
 
 @dataclass(frozen=True)
-class Profile(MapSettings):
-    """A device profile: the mapper's settings (one TOML table per :class:`MapSettings` section),
-    plus evaluation, service and query-inference settings."""
+class Profile:
+    """A device profile: the mapper's settings (one TOML table per :class:`MapSettings` section:
+    ``[mapper]``, ``[voxels]``, ...), plus evaluation, service and query-inference settings
+    (``[eval]``, ``[service]``, ``[inference]``)."""
 
     name: str = "default"
+    mapping: MapSettings = dataclasses.field(default_factory=MapSettings)
     eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
     service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
     inference: InferenceConfig = dataclasses.field(default_factory=InferenceConfig)
 
     def map_settings(self) -> MapSettings:
-        return MapSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(MapSettings)})
+        return self.mapping
+
+    def with_device(self, device: str) -> Profile:
+        """This profile with the mapper on ``device`` (cpu, cuda, auto)."""
+        mapping = dataclasses.replace(self.mapping, mapper=dataclasses.replace(self.mapping.mapper, device=device))
+        return dataclasses.replace(self, mapping=mapping)
 
 
 def _coerce(value, tp, where: str):
@@ -83,15 +90,19 @@ def load_profile(path: str | Path) -> Profile:
         raise ProfileError(f"{p}: profile not found") from None
     except tomllib.TOMLDecodeError as e:
         raise ProfileError(f"{p}: {e}") from None
-    sections = {f.name: f for f in dataclasses.fields(Profile) if f.name != "name"}
+    own = {f.name for f in dataclasses.fields(Profile)} - {"name", "mapping"}
+    mapping_sections = {f.name for f in dataclasses.fields(MapSettings)}
     kwargs: dict = {"name": data.pop("name", p.stem)}
+    mapping: dict = {}
     for key, value in data.items():
-        if key not in sections:
-            raise ProfileError(f"{p}: unknown table [{key}] (known: {', '.join(sorted(sections))})")
+        if key not in own | mapping_sections:
+            raise ProfileError(f"{p}: unknown table [{key}] (known: {', '.join(sorted(own | mapping_sections))})")
         if not isinstance(value, dict):
             raise ProfileError(f"{p}: [{key}] must be a table")
-        kwargs[key] = _section(typing.get_type_hints(Profile)[key], value, f"{p}: [{key}]")
-    return Profile(**kwargs)
+        owner = Profile if key in own else MapSettings
+        section = _section(typing.get_type_hints(owner)[key], value, f"{p}: [{key}]")
+        (kwargs if key in own else mapping)[key] = section
+    return Profile(mapping=MapSettings(**mapping), **kwargs)
 
 
 def apply_overrides(settings: MapSettings, overrides: list[str]) -> MapSettings:

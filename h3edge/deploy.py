@@ -103,11 +103,11 @@ def plan(profile: str | None, model_file: str | Path = "/proc/device-tree/model"
                          f"Jetson ({', '.join(n for n, _ in JETSON_PROFILES)}): pass --profile")
     prof = load_profile(name)
     path = Path(name) if Path(name).suffix else PROFILES_DIR / f"{name}.toml"
-    rt = measure_runtime_mb(prof.mapper.device) if runtime_mb is None else runtime_mb
+    rt = measure_runtime_mb(prof.mapping.mapper.device) if runtime_mb is None else runtime_mb
     lim = memory_limits(prof.service.memory_budget_mb, rt, total_memory_mb(meminfo))
     return {"DEVICE_MODEL": model, "PROFILE": prof.name, "PROFILE_FILE": str(path.resolve()),
-            "MAPPING_DEVICE": prof.mapper.device, "BUDGET_MB": lim.budget_mb, "RUNTIME_MB": round(lim.runtime_mb),
-            "MEMORY_HIGH": f"{lim.high_mb}M", "MEMORY_MAX": f"{lim.max_mb}M"}
+            "MAPPING_DEVICE": prof.mapping.mapper.device, "BUDGET_MB": lim.budget_mb,
+            "RUNTIME_MB": round(lim.runtime_mb), "MEMORY_HIGH": f"{lim.high_mb}M", "MEMORY_MAX": f"{lim.max_mb}M"}
 
 
 def format_plan(values: dict) -> str:

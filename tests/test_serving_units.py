@@ -252,7 +252,7 @@ def test_jetson_model_picks_its_profile(model, profile):
 
     assert profile_for_model(model) == profile
     if profile:
-        assert load_profile(profile).mapper.device == "cuda"
+        assert load_profile(profile).mapping.mapper.device == "cuda"
 
 
 def test_deploy_plan_sizes_the_unit_and_refuses_what_does_not_fit(tmp_path):
