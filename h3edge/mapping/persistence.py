@@ -15,7 +15,6 @@ import torch
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.keyframes import Keyframe
 from h3edge.mapping.mapper import Mapper, MapSettings, StoredFrame
-from h3edge.mapping.voxels import KeyIndex
 
 STATE_VERSION = 1
 
@@ -34,15 +33,13 @@ def _split(data: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [data[offsets[i]:offsets[i + 1]] for i in range(len(offsets) - 1)]
 
 
-def _index_state(k: KeyIndex) -> np.ndarray:
-    return k.keys.copy()
+def _prefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {f"{prefix}/{k}": v for k, v in arrays.items()}
 
 
-def _restore_index(keys: np.ndarray) -> KeyIndex:
-    k = KeyIndex()
-    order = np.argsort(keys, kind="stable")
-    k.keys, k._sorted, k._ids = keys.astype(np.int64), keys[order].astype(np.int64), order.astype(np.int64)
-    return k
+def _unprefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    n = len(prefix) + 1
+    return {k[n:]: v for k, v in arrays.items() if k.startswith(prefix + "/")}
 
 
 def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
@@ -53,9 +50,7 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
     meta: dict = {"state_version": STATE_VERSION, "frames_mapped": m.frames_mapped, "dropped": dict(m.dropped),
                   "last_timestamp": m.last_timestamp,
                   "iterations": dict(m.iterations),
-                  "bound": m.bound.tolist(), "voxels_refused": m.voxels.refused,
-                  "rng": m.rng.bit_generator.state, "grid_steps": {}, "prior_steps": m.prior_opt.steps,
-                  "texture_updates": m.patterns.updates}
+                  "bound": m.bound.tolist(), "rng": m.rng.bit_generator.state, "grid_steps": {}}
     # field: hash grids sparsely, everything else whole
     grids = {"geo": m.field.geo_grid, "tex": m.field.texture.grid}
     for name, g in grids.items():
@@ -74,16 +69,13 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
         for k, v in st.items():
             arrays[f"opt/{i}/{k}"] = _np(v) if torch.is_tensor(v) else np.asarray(v)
     arrays["torch_generator"] = _np(m.generator.get_state())
-    # voxels and priors
-    vx = m.voxels
-    arrays["voxels/keys"] = _index_state(vx.voxels)
-    arrays["voxels/vertex_keys"] = _index_state(vx.vertices)
-    arrays["voxels/voxel_vertices"] = vx.voxel_vertices.copy()
-    arrays["voxels/priors"] = _np(vx.priors)
-    arrays["voxels/prior_set"] = vx.prior_set.copy()
-    arrays["voxels/prior_obs"] = vx.prior_obs.copy()
-    arrays["prior_opt/m"] = _np(m.prior_opt.m)
-    arrays["prior_opt/v"] = _np(m.prior_opt.v)
+    # voxels and priors, their optimiser
+    vmeta, varrays = m.voxels.state_dict()
+    meta.update(vmeta)
+    arrays.update(_prefixed("voxels", varrays))
+    ometa, oarrays = m.prior_opt.state_dict()
+    meta["prior_steps"] = ometa["steps"]
+    arrays.update(_prefixed("prior_opt", oarrays))
     # keyframes
     kfs = m.keyframes.keyframes
     meta["keyframes"] = [{"frame_id": k.frame_id, "selected": k.selected_this_round,
@@ -99,9 +91,9 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
         arrays[f"kf/{name}"], arrays[f"kf/{name}_offsets"] = _concat([get(k) for k in kfs], dt, w)
     arrays["kf/observed"] = m.keyframes.observed.copy()
     # texture patterns
-    p = m.patterns
-    for name in ("dirs", "dir_weights", "n_dirs", "G", "CNT"):
-        arrays[f"patterns/{name}"] = getattr(p, name).copy()
+    pmeta, parrays = m.patterns.state_dict()
+    meta["texture_updates"] = pmeta["updates"]
+    arrays.update(_prefixed("patterns", parrays))
     return meta, arrays
 
 
@@ -138,17 +130,8 @@ def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarr
             state.setdefault(int(i), {})[name] = vt if name != "step" else vt.to(torch.float32)
     m.optimizer.load_state_dict({"state": state, "param_groups": meta["optimizer_groups"]})
     m.generator.set_state(torch.from_numpy(arrays["torch_generator"]))
-    vx = m.voxels
-    vx.voxels = _restore_index(arrays["voxels/keys"])
-    vx.vertices = _restore_index(arrays["voxels/vertex_keys"])
-    vx.voxel_vertices = arrays["voxels/voxel_vertices"].astype(np.int64)
-    vx.priors = t(arrays["voxels/priors"]).float().requires_grad_(True)
-    vx.prior_set = arrays["voxels/prior_set"].astype(bool)
-    vx.prior_obs = (arrays["voxels/prior_obs"].astype(np.uint8) if "voxels/prior_obs" in arrays
-                    else np.zeros(len(vx.prior_set), np.uint8))
-    vx.refused = int(meta["voxels_refused"])
-    m.prior_opt.m, m.prior_opt.v = t(arrays["prior_opt/m"]).float(), t(arrays["prior_opt/v"]).float()
-    m.prior_opt.steps = int(meta["prior_steps"])
+    m.voxels.load_state_dict(meta, _unprefixed("voxels", arrays))
+    m.prior_opt.load_state_dict({"steps": meta["prior_steps"]}, _unprefixed("prior_opt", arrays), dev)
     parts = {
         n: _split(arrays[f"kf/{n}"], arrays[f"kf/{n}_offsets"]) for n in ("voxels", "scores", "pix", "rgb", "depth")
     }
@@ -161,9 +144,7 @@ def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarr
     m.keyframes.observed = arrays["kf/observed"].astype(bool)
     m.keyframes.frames_since_insert = int(meta["keyframe_policy"]["frames_since_insert"])
     m.keyframes.pruned = int(meta["keyframe_policy"]["pruned"])
-    for name in ("dirs", "dir_weights", "n_dirs", "G", "CNT"):
-        setattr(m.patterns, name, arrays[f"patterns/{name}"].copy())
-    m.patterns.updates = int(meta["texture_updates"])
+    m.patterns.load_state_dict({"updates": meta["texture_updates"]}, _unprefixed("patterns", arrays))
     m.frames_mapped = int(meta["frames_mapped"])
     m.dropped = dict(meta["dropped"])
     m.last_timestamp = meta["last_timestamp"]

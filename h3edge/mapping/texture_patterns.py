@@ -219,6 +219,17 @@ class TexturePatterns:
         self._detector: LineDetector | None = None
         self.updates = 0
 
+    STATE = ("dirs", "dir_weights", "n_dirs", "G", "CNT")
+
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(meta, arrays): the per-voxel directions, weights, gradients and counts."""
+        return {"updates": self.updates}, {name: getattr(self, name).copy() for name in self.STATE}
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        for name in self.STATE:
+            setattr(self, name, arrays[name].copy())
+        self.updates = int(meta["updates"])
+
     def __len__(self) -> int:
         return len(self.G)
 

@@ -75,6 +75,14 @@ class KeyIndex:
         i = lookup(self._sorted, keys)
         return np.where(i >= 0, self._ids[np.maximum(i, 0)], -1)
 
+    def state_dict(self) -> np.ndarray:
+        """The keys by id (the sorted index is rebuilt from them)."""
+        return self.keys.copy()
+
+    def load_state_dict(self, keys: np.ndarray) -> None:
+        order = np.argsort(keys, kind="stable")
+        self.keys, self._sorted, self._ids = keys.astype(np.int64), keys[order].astype(np.int64), order.astype(np.int64)
+
     def add(self, new_keys: np.ndarray) -> np.ndarray:
         """Append keys that are not present yet (unique, absent); returns their ids."""
         ids = np.arange(len(self.keys), len(self.keys) + len(new_keys))
@@ -134,6 +142,23 @@ class VoxelMap:
 
     def __len__(self) -> int:
         return len(self.voxels)
+
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(meta, arrays): voxel and vertex keys, corner ids, priors and their flags."""
+        arrays = {"keys": self.voxels.state_dict(), "vertex_keys": self.vertices.state_dict(),
+                  "voxel_vertices": self.voxel_vertices.copy(), "priors": self.priors.detach().cpu().numpy().copy(),
+                  "prior_set": self.prior_set.copy(), "prior_obs": self.prior_obs.copy()}
+        return {"voxels_refused": self.refused}, arrays
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.voxels.load_state_dict(arrays["keys"])
+        self.vertices.load_state_dict(arrays["vertex_keys"])
+        self.voxel_vertices = arrays["voxel_vertices"].astype(np.int64)
+        self.priors = torch.from_numpy(np.asarray(arrays["priors"], np.float32)).to(self.device).requires_grad_(True)
+        self.prior_set = arrays["prior_set"].astype(bool)
+        self.prior_obs = (arrays["prior_obs"].astype(np.uint8) if "prior_obs" in arrays
+                          else np.zeros(len(self.prior_set), np.uint8))
+        self.refused = int(meta["voxels_refused"])
 
     @property
     def voxel_keys(self) -> np.ndarray:
@@ -352,6 +377,15 @@ class PriorAdam:
         self.m = torch.zeros(0)
         self.v = torch.zeros(0)
         self.steps = 0
+
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        arrays = {"m": self.m.detach().cpu().numpy().copy(), "v": self.v.detach().cpu().numpy().copy()}
+        return {"steps": self.steps}, arrays
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray], device: str | torch.device = "cpu") -> None:
+        self.m = torch.from_numpy(np.asarray(arrays["m"], np.float32)).to(device)
+        self.v = torch.from_numpy(np.asarray(arrays["v"], np.float32)).to(device)
+        self.steps = int(meta["steps"])
 
     @torch.no_grad()
     def step(self, voxels: VoxelMap) -> int:
