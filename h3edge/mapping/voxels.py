@@ -269,20 +269,12 @@ class VoxelMap:
     def _init_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
         """Projective priors for the unset vertices of ``voxel_ids`` (see the module docstring)."""
         vid = self.voxel_vertices[voxel_ids]  # (n, 8)
-        pos = unpack(self.vertex_keys[vid.reshape(-1)]) * self.cfg.voxel_size
-        uv, z = project(pos.astype(np.float64), intr, c2w)
-        with np.errstate(invalid="ignore"):
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
-        d = np.zeros(len(z))
-        ui = np.clip(np.nan_to_num(uv[:, 0]), 0, intr.width - 1).astype(int)
-        vi = np.clip(np.nan_to_num(uv[:, 1]), 0, intr.height - 1).astype(int)
-        d[inside] = depth[vi[inside], ui[inside]]
-        sdf = d - z
+        sdf, valid = self._projective_sdf(vid.reshape(-1), depth, intr, c2w)
         with np.errstate(invalid="ignore"):
             known = np.abs(sdf) < self.cfg.init_range
             if self.cfg.prior_clamp > 0:  # far in front of the surface: free, set to +clamp below
                 known |= sdf > 0
-            good = inside & (d > 0) & known
+            good = valid & known
         ok = np.repeat(good.reshape(-1, 8).all(1), 8)  # a voxel's 8 priors together (paper)
         targets = vid.reshape(-1)[ok]
         values = sdf[ok] / self.cfg.truncation
