@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from h3edge.geometry.camera import Intrinsics
+from h3edge.geometry.poses import pose_from_tq
 from h3edge.io import oak
 from h3edge.io.protocol import decode_frame, encode_frame
 
@@ -120,7 +121,7 @@ def test_vio_pose_composes_the_imu_extrinsics():
     # the camera origin in IMU coordinates is (-0.05, 0, 0); rotated 90 deg about z -> (0, -0.05, 0)
     assert np.allclose(c2w[:3, 3], [1.0, 1.95, 3.0]) and np.allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3))
     tr = dai.TransformData(1.0, 2.0, 3.0, *q90z)
-    assert np.allclose(oak.vio_pose(*oak.transform_tq(tr), np.eye(4)), oak.quat_matrix((1, 2, 3), q90z))
+    assert np.allclose(oak.vio_pose(*oak.transform_tq(tr), np.eye(4)), pose_from_tq((1, 2, 3), q90z))
     with pytest.raises(ValueError, match="norm"):
         oak.vio_pose((0, 0, 0), (0.0, 0.0, 0.0, 2.0), np.eye(4))
 

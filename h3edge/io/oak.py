@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
+from h3edge.geometry.poses import pose_from_tq
 from h3edge.io.protocol import FrameMessage
 
 log = logging.getLogger(__name__)
@@ -162,21 +163,6 @@ def group_to_message(group, frame_id: int, clock: HostClock, fallback: Intrinsic
                         intrinsics=intr, pose=pose, frame_name=f"oak-{rgb.getSequenceNum()}")
 
 
-def quat_matrix(t, q) -> np.ndarray:
-    """4x4 rigid transform from a translation and a unit quaternion (x, y, z, w)."""
-    x, y, z, w = (float(v) for v in q)
-    n = np.sqrt(x * x + y * y + z * z + w * w)
-    if not np.isfinite(n) or abs(n - 1.0) > 1e-3:
-        raise ValueError(f"quaternion norm {n} is not 1")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = [float(v) for v in t]
-    return m
-
-
 def transform_tq(tr) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
     """(translation, quaternion x, y, z, w) of a depthai TransformData."""
     t, q = tr.getTranslation(), tr.getQuaternion()
@@ -189,7 +175,10 @@ def vio_pose(t, q, imu_to_camera: np.ndarray) -> np.ndarray:
     T_world_cam = T_world_imu @ inv(T_cam_imu)."""
     if not np.all(np.isfinite(np.asarray(t, np.float64))):
         raise ValueError(f"translation {t} is not finite")
-    return quat_matrix(t, q) @ np.linalg.inv(np.asarray(imu_to_camera, np.float64))
+    n = float(np.linalg.norm(np.asarray(q, np.float64)))
+    if not np.isfinite(n) or abs(n - 1.0) > 1e-3:  # VIO sends unit quaternions: anything else is corrupt
+        raise ValueError(f"quaternion norm {n} is not 1")
+    return pose_from_tq(np.asarray(t, np.float64), q) @ np.linalg.inv(np.asarray(imu_to_camera, np.float64))
 
 
 # ------------------------------------------------------------------------------ the node graph
