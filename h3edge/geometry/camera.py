@@ -73,6 +73,14 @@ def pixel_rays_world(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.
     return c2w[:3, 3].copy(), d
 
 
+def pixels_to_camera(u: np.ndarray, v: np.ndarray, z: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Camera-frame points (..., 3) at z-depths ``z`` on the rays of integer pixels (u, v)."""
+    x = (np.asarray(u, np.float64) + PIXEL_CENTER_OFFSET - intr.cx) / intr.fx
+    y = (np.asarray(v, np.float64) + PIXEL_CENTER_OFFSET - intr.cy) / intr.fy
+    z = np.asarray(z, np.float64)
+    return np.stack([x * z, y * z, z], -1)
+
+
 def backproject(depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray | None = None) -> np.ndarray:
     """Back-project a depth image (metres, 0 = invalid) to points, shape (H, W, 3).
 

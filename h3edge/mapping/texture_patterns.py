@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from h3edge.geometry.camera import Intrinsics
+from h3edge.geometry.camera import Intrinsics, pixels_to_camera, project
 from h3edge.mapping.gradient import color_gradient
 
 PLAIN, WEAK, RICH = 0, 1, 2
@@ -126,16 +126,15 @@ def lift_segments(segs: np.ndarray, weights: np.ndarray, depth: np.ndarray, intr
     cand &= (z[:, 0] > 0) & (z[:, -1] > 0)
     cand &= np.all(np.abs(np.diff(z, axis=1)) <= cfg.line_depth_jump, axis=1) & np.all(z > 0, axis=1)
     # 3D endpoints (camera frame) from the end pixels' depth
-    def cam(u, v, zz):
-        return np.stack([(u - intr.cx) / intr.fx * zz, (v - intr.cy) / intr.fy * zz, zz], -1)
-
-    P0, P1 = cam(ui[:, 0], vi[:, 0], z[:, 0]), cam(ui[:, -1], vi[:, -1], z[:, -1])
+    P0 = pixels_to_camera(ui[:, 0], vi[:, 0], z[:, 0], intr)
+    P1 = pixels_to_camera(ui[:, -1], vi[:, -1], z[:, -1], intr)
     # plane check: 5 points along the 3D segment, projected, read depth there, back-projected
     s = np.linspace(0.0, 1.0, 5)
     Q = P0[:, None, :] + s[None, :, None] * (P1 - P0)[:, None, :]  # (K, 5, 3)
     qz = np.where(Q[..., 2] > 1e-6, Q[..., 2], 1e-6)
-    qu = np.clip(np.rint(Q[..., 0] / qz * intr.fx + intr.cx).astype(np.int64), 0, w - 1)
-    qv = np.clip(np.rint(Q[..., 1] / qz * intr.fy + intr.cy).astype(np.int64), 0, h - 1)
+    quv, _ = project(np.stack([Q[..., 0], Q[..., 1], qz], -1).reshape(-1, 3), intr, np.eye(4))
+    qu = np.clip(np.floor(np.nan_to_num(quv[:, 0])).astype(np.int64), 0, w - 1).reshape(qz.shape)
+    qv = np.clip(np.floor(np.nan_to_num(quv[:, 1])).astype(np.int64), 0, h - 1).reshape(qz.shape)
     dq = depth[qv, qu]
     B = Q * (dq / qz)[..., None]  # the measured surface point on the ray through Q
     dist = np.linalg.norm(Q - B, axis=-1).sum(1)
