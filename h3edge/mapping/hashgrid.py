@@ -200,6 +200,19 @@ class HashGrid(torch.nn.Module):
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self._kern = None
 
+    def inference_copy_memo(self) -> dict:
+        """``copy.deepcopy`` memo entries that leave this grid's optimiser state and gradient
+        scratch out of a copy (empty in the copy) and share its compiled kernels."""
+        memo: dict = {}
+        for name in ("adam_m", "adam_v", "_grad_buf", "_touched"):
+            if hasattr(self, name):
+                memo[id(getattr(self, name))] = torch.zeros(0)
+        if hasattr(self, "_touched_rows"):
+            memo[id(self._touched_rows)] = np.empty(0, np.int64)
+        if self._kern is not None:
+            memo[id(self._kern)] = self._kern
+        return memo
+
     def _kernels(self):
         if self._kern is None:
             self._kern = _numba_kernels()

@@ -27,13 +27,7 @@ def _inference_copy(field: Field) -> Field:
     """Deep copy of ``field`` without optimiser state or gradient scratch (not trainable)."""
     memo: dict = {}
     for g in field.hash_grids():
-        for name in ("adam_m", "adam_v", "_grad_buf", "_touched"):
-            if hasattr(g, name):
-                memo[id(getattr(g, name))] = torch.zeros(0)
-        if hasattr(g, "_touched_rows"):
-            memo[id(g._touched_rows)] = np.empty(0, np.int64)
-        if g._kern is not None:
-            memo[id(g._kern)] = g._kern  # compiled kernels are shared, not copied
+        memo.update(g.inference_copy_memo())
     with torch.no_grad():
         out = copy.deepcopy(field, memo)
     for p in out.parameters():
@@ -42,13 +36,7 @@ def _inference_copy(field: Field) -> Field:
 
 
 def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
-    out = copy.copy(voxels)
-    out.voxels = copy.deepcopy(voxels.voxels)
-    out.vertices = copy.deepcopy(voxels.vertices)
-    out.voxel_vertices = voxels.voxel_vertices.copy()
-    out.priors = voxels.priors.detach().clone()
-    out.prior_set = voxels.prior_set.copy()
-    return out
+    return voxels.frozen_copy()
 
 
 class MapView:

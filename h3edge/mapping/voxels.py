@@ -23,6 +23,7 @@ The coarse SDF of a point is the trilinear interpolation of its voxel's 8 priors
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,6 +150,15 @@ class VoxelMap:
                   "voxel_vertices": self.voxel_vertices.copy(), "priors": self.priors.detach().cpu().numpy().copy(),
                   "prior_set": self.prior_set.copy(), "prior_obs": self.prior_obs.copy()}
         return {"voxels_refused": self.refused}, arrays
+
+    def frozen_copy(self) -> VoxelMap:
+        """An independent copy for queries (priors detached, no gradient)."""
+        out = copy.copy(self)
+        out.voxels, out.vertices = copy.deepcopy(self.voxels), copy.deepcopy(self.vertices)
+        out.voxel_vertices = self.voxel_vertices.copy()
+        out.priors = self.priors.detach().clone()
+        out.prior_set, out.prior_obs = self.prior_set.copy(), self.prior_obs.copy()
+        return out
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
         self.voxels.load_state_dict(arrays["keys"])
