@@ -47,7 +47,6 @@ from h3edge.io.protocol import (
     ProtocolError,
     check_map_id,
     decode_frame,
-    decode_pose,
     encode_frame,
 )
 from h3edge.io.sequence import Frame
@@ -67,6 +66,7 @@ from h3edge.serving.checkpoint import (
     remove_leftovers,
     write_checkpoint,
 )
+from h3edge.serving.ingest import Ingest, PendingFrame
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.queries import MeshRequest, RenderRequest
 
@@ -101,12 +101,6 @@ class ServiceConfig:
 
 
 # --------------------------------------------------------------------------------- service
-@dataclass
-class _Pending:
-    data: bytes
-    received: float  # time.monotonic()
-
-
 class MapService:
     def __init__(self, settings: MapSettings, cfg: ServiceConfig = ServiceConfig(), profile_name: str = "",
                  resume: bool = False, inference: InferenceConfig = InferenceConfig()):
@@ -134,6 +128,7 @@ class MapService:
         if resume:
             self._resume()
         self.mapper.step_hook = self._serve_requests
+        self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
         self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
         self.durations: DurationLog | None = None
         try:
@@ -141,8 +136,6 @@ class MapService:
             self.mapper.timings.sink = self.durations
         except OSError as e:
             log.error("no timing log in %s: %s", self.run_dir, e)
-        self._queue: collections.deque[_Pending] = collections.deque()
-        self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._writer: threading.Thread | None = None
@@ -152,11 +145,9 @@ class MapService:
         self._last_save_request: float | None = None
         self._view: MapView | None = None
         self._view_time = 0.0
-        self._counts = collections.Counter()  # service-level counters
+        self._counts = collections.Counter()  # service-level counters (idle-training errors)
         self._drops = collections.Counter()  # service-level frame drop reasons
-        self._pose_drops = collections.Counter()  # refused pose messages, by reason
         self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
-        self._recent_received: collections.deque[float] = collections.deque(maxlen=300)
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
         self._iteration_log: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=2000)
         self.last_error: dict | None = None
@@ -237,8 +228,7 @@ class MapService:
         """Stop mapping (the frame in progress finishes), write a final checkpoint; False when that
         checkpoint was asked for and failed."""
         self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
+        self.ingest.wake()
         if self._thread is not None:
             self._thread.join(timeout)
         if self._writer is not None:
@@ -262,48 +252,11 @@ class MapService:
     # ------------------------------------------------------------------ ingest
     def submit_frame(self, data: bytes) -> None:
         """Queue a raw frame message (called from the transport's thread; never blocks)."""
-        now = time.monotonic()
-        t0 = time.perf_counter()
-        with self._cond:
-            self._counts["frames_received"] += 1
-            self._recent_received.append(now)
-            if len(self._queue) >= self.cfg.ingest_queue:
-                self._queue.popleft()
-                self._drops["queue_full"] += 1
-            self._queue.append(_Pending(bytes(data), now))
-            self._cond.notify()
-        self.mapper.timings.add("ingest", time.perf_counter() - t0)
+        self.ingest.submit_frame(data)
 
     def submit_pose(self, data: bytes) -> None:
-        """Parse and buffer a pose message (called from the transport's thread; never raises: a
-        pose that cannot be used is a counted drop)."""
-        self._counts["poses_received"] += 1
-        try:
-            self._add_pose(data)
-        except Exception as e:  # noqa: BLE001 - a bug must not escape into the zenoh callback
-            log.exception("pose failed")
-            self._pose_drop("internal_error_pose", f"{type(e).__name__}: {e}")
-
-    def _add_pose(self, data: bytes) -> None:
-        try:
-            msg = decode_pose(data)
-        except ProtocolError as e:
-            self._pose_drop("malformed_pose", str(e))
-            return
-        if self._from_future(msg.timestamp_ns):
-            self._pose_drop("future_pose", f"pose at {msg.timestamp_ns} ns is more than {self.cfg.max_future_s:g} s "
-                                           "ahead of this host's clock")
-            return
-        why = self.poses.add(msg.timestamp_ns, msg.pose)
-        if why:
-            self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {msg.timestamp_ns} ns: {why}")
-
-    def _from_future(self, timestamp_ns: int) -> bool:
-        return timestamp_ns > time.time_ns() + int(self.cfg.max_future_s * 1e9)
-
-    def _pose_drop(self, code: str, text: str) -> None:
-        self._pose_drops[code] += 1
-        self._error(code, text)
+        """Parse and buffer a pose message (called from the transport's thread; never raises)."""
+        self.ingest.submit_pose(data)
 
     def _error(self, code: str, text: str) -> None:
         self.last_error = {"code": code, "message": text, "unix": time.time()}
@@ -315,8 +268,7 @@ class MapService:
         while not self._stop.is_set():
             self.heartbeat = time.monotonic()
             self._serve_requests()
-            with self._cond:
-                item = self._queue.popleft() if self._queue else None
+            item = self.ingest.pop()
             if item is None:  # no frame waiting: one keyframe iteration, or a short wait
                 trained = False
                 try:
@@ -328,9 +280,7 @@ class MapService:
                 if trained:
                     self._note_iterations()
                 else:
-                    with self._cond:
-                        if not self._queue and not self._stop.is_set():
-                            self._cond.wait(0.05)
+                    self.ingest.wait(0.05, self._stop)
             else:
                 try:
                     self._handle(item)
@@ -371,7 +321,7 @@ class MapService:
                 out["between_frames_share"] = round(d_idle / (d_frame + d_idle), 3)
         return out
 
-    def _handle(self, item: _Pending) -> None:
+    def _handle(self, item: PendingFrame) -> None:
         self.mapper.timings.add("queue_wait", time.monotonic() - item.received)
         t0 = time.perf_counter()
         try:
@@ -384,7 +334,7 @@ class MapService:
             self._drops["malformed"] += 1
             self._error("malformed", str(e))
             return
-        if self._from_future(msg.timestamp_ns):
+        if self.ingest.from_future(msg.timestamp_ns):
             self._drops["future_timestamp"] += 1
             self._error("future_timestamp", f"frame {msg.frame_id} stamped {msg.timestamp_ns} ns, more than "
                                             f"{self.cfg.max_future_s:g} s ahead of this host's clock")
@@ -446,8 +396,7 @@ class MapService:
         fut: Future = Future()
         with self._req_lock:
             requests.append(fut)
-        with self._cond:
-            self._cond.notify()
+        self.ingest.wake()
         if not self.alive:
             self._serve_requests()
         return fut.result(self.cfg.query_timeout_s)
@@ -532,13 +481,13 @@ class MapService:
     def status(self) -> dict:
         now = time.monotonic()
         s = self._stats
-        dropped = dict(self._drops)
+        dropped = dict(self._drops + self.ingest.frame_drops)
         for k, v in s.get("dropped", {}).items():
             v -= self._dropped_at_start.get(k, 0)
             if v:
                 dropped[k] = dropped.get(k, 0) + v
         frames_dropped = sum(dropped.values())  # frames only: mapped + dropped never exceeds received
-        for k, v in self._pose_drops.items():
+        for k, v in self.ingest.pose_drops.items():
             dropped[k] = dropped.get(k, 0) + v
 
         def rate(ts: collections.deque) -> float:
@@ -549,12 +498,13 @@ class MapService:
         return {"map_id": self.cfg.map_id, "profile": self.profile_name, "device": str(self.mapper.device),
                 "inference": self.inference_info(),
                 "uptime_s": round(time.time() - self.started, 1),
-                "frames": {"received": self._counts["frames_received"],
+                "frames": {"received": self.ingest.counts["frames_received"],
                            "mapped": s.get("frames_mapped", 0) - self._mapped_at_start,
-                           "dropped": frames_dropped, "queued": len(self._queue)},
-                "dropped": dropped, "poses": {"received": self._counts["poses_received"], "buffered": len(self.poses),
-                                              "dropped": sum(self._pose_drops.values())},
-                "rates_hz": {"received": rate(self._recent_received), "mapped": rate(self._recent_mapped)},
+                           "dropped": frames_dropped, "queued": len(self.ingest)},
+                "dropped": dropped, "poses": {"received": self.ingest.counts["poses_received"],
+                                              "buffered": len(self.poses),
+                                              "dropped": sum(self.ingest.pose_drops.values())},
+                "rates_hz": {"received": rate(self.ingest.recent_received), "mapped": rate(self._recent_mapped)},
                 "delay_s": {"median": round(float(np.median(delays)), 3) if delays else None},
                 "training": self.training_rate(),
                 "map": {k: s.get(k) for k in ("frames_mapped", "voxels", "voxels_refused", "vertices", "keyframes",
