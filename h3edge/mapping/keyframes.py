@@ -20,7 +20,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
+
+
+@dataclass
+class StoredFrame:
+    """What a keyframe keeps for training to draw rays from: a fixed random subset of its valid
+    pixels (``keyframes.stored_pixels``), ~11 bytes per kept pixel instead of the full images."""
+
+    pix: np.ndarray  # int32 flat pixel indices (row-major) of valid-depth pixels
+    rgb: np.ndarray  # uint8 (n, 3) colour at those pixels
+    depth: np.ndarray  # float32 (n,) cleaned depth at those pixels
+    pose: np.ndarray
+    intrinsics: Intrinsics
+
+    def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(pixel indices, colours, depths) of the ``j``-th kept pixels."""
+        return self.pix[j], self.rgb[j], self.depth[j]
+
+    @property
+    def nbytes(self) -> int:
+        return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:
@@ -60,6 +81,42 @@ class KeyframeSet:
     frames_since_insert: int = 0
     pruned: int = 0
     evicted: int = 0
+
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(meta, arrays): every keyframe (its voxels, scores and stored pixels, concatenated with
+        offsets), the selection round's observed voxels and the policy's counters."""
+        kfs = self.keyframes
+        meta = {"keyframes": [{"frame_id": k.frame_id, "selected": k.selected_this_round,
+                               "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist()}
+                              for k in kfs],
+                "keyframe_policy": {"frames_since_insert": self.frames_since_insert, "pruned": self.pruned}}
+        arrays: dict[str, np.ndarray] = {}
+        for name, get, dt, w in (("voxels", lambda k: k.voxels, np.int64, ()),
+                                 ("scores", lambda k: k.scores, np.float64, ()),
+                                 ("pix", lambda k: k.payload.pix, np.int32, ()),
+                                 ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
+                                 ("depth", lambda k: k.payload.depth, np.float32, ())):
+            parts = [get(k) for k in kfs]
+            arrays[f"{name}_offsets"] = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
+            arrays[name] = np.concatenate(parts).astype(dt) if parts else np.zeros((0, *w), dt)
+        arrays["observed"] = self.observed.copy()
+        return meta, arrays
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        def split(name: str) -> list[np.ndarray]:
+            data, off = arrays[name], arrays[f"{name}_offsets"]
+            return [data[off[i]:off[i + 1]] for i in range(len(off) - 1)]
+
+        parts = {n: split(n) for n in ("voxels", "scores", "pix", "rgb", "depth")}
+        self.keyframes = [
+            Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i],
+                     StoredFrame(parts["pix"][i], parts["rgb"][i], parts["depth"][i],
+                                 np.asarray(km["pose"], np.float64), Intrinsics(**km["intrinsics"])),
+                     km["selected"])
+            for i, km in enumerate(meta["keyframes"])]
+        self.observed = arrays["observed"].astype(bool)
+        self.frames_since_insert = int(meta["keyframe_policy"]["frames_since_insert"])
+        self.pruned = int(meta["keyframe_policy"]["pruned"])
 
     def should_insert(self, voxels: np.ndarray) -> bool:
         """Insertion rule for a frame observing ``voxels`` (unique ids); counts the interval."""

@@ -33,7 +33,7 @@ from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, r
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.gradient import color_gradient
-from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, gradient_scores
+from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, StoredFrame, gradient_scores
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
@@ -94,26 +94,6 @@ class FrameResult:
     new_voxels: int = 0
     keyframe: bool = False
     losses: dict = dataclasses.field(default_factory=dict)
-
-
-@dataclass
-class StoredFrame:
-    """What a keyframe keeps for training to draw rays from: a fixed random subset of its valid
-    pixels (``keyframes.stored_pixels``), ~11 bytes per kept pixel instead of the full images."""
-
-    pix: np.ndarray  # int32 flat pixel indices (row-major) of valid-depth pixels
-    rgb: np.ndarray  # uint8 (n, 3) colour at those pixels
-    depth: np.ndarray  # float32 (n,) cleaned depth at those pixels
-    pose: np.ndarray
-    intrinsics: Intrinsics
-
-    def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(pixel indices, colours, depths) of the ``j``-th kept pixels."""
-        return self.pix[j], self.rgb[j], self.depth[j]
-
-    @property
-    def nbytes(self) -> int:
-        return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16
 
 
 @dataclass

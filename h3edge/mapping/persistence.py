@@ -12,25 +12,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping.keyframes import Keyframe
-from h3edge.mapping.mapper import Mapper, MapSettings, StoredFrame
+from h3edge.mapping.mapper import Mapper, MapSettings
 
 STATE_VERSION = 1
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy().copy()
-
-
-def _concat(parts: list[np.ndarray], dtype, width: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
-    offsets = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
-    data = np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *width), dtype)
-    return data, offsets
-
-
-def _split(data: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
-    return [data[offsets[i]:offsets[i + 1]] for i in range(len(offsets) - 1)]
 
 
 def _prefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -77,19 +65,9 @@ def mapper_state(m: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
     meta["prior_steps"] = ometa["steps"]
     arrays.update(_prefixed("prior_opt", oarrays))
     # keyframes
-    kfs = m.keyframes.keyframes
-    meta["keyframes"] = [{"frame_id": k.frame_id, "selected": k.selected_this_round,
-                          "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist()} for k in kfs]
-    meta["keyframe_policy"] = {"frames_since_insert": m.keyframes.frames_since_insert, "pruned": m.keyframes.pruned}
-    for name, get, dt, w in (
-        ("voxels", lambda k: k.voxels, np.int64, ()),
-        ("scores", lambda k: k.scores, np.float64, ()),
-        ("pix", lambda k: k.payload.pix, np.int32, ()),
-        ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
-        ("depth", lambda k: k.payload.depth, np.float32, ()),
-    ):
-        arrays[f"kf/{name}"], arrays[f"kf/{name}_offsets"] = _concat([get(k) for k in kfs], dt, w)
-    arrays["kf/observed"] = m.keyframes.observed.copy()
+    kmeta, karrays = m.keyframes.state_dict()
+    meta.update(kmeta)
+    arrays.update(_prefixed("kf", karrays))
     # texture patterns
     pmeta, parrays = m.patterns.state_dict()
     meta["texture_updates"] = pmeta["updates"]
@@ -132,18 +110,7 @@ def restore_mapper(settings: MapSettings, meta: dict, arrays: dict[str, np.ndarr
     m.generator.set_state(torch.from_numpy(arrays["torch_generator"]))
     m.voxels.load_state_dict(meta, _unprefixed("voxels", arrays))
     m.prior_opt.load_state_dict({"steps": meta["prior_steps"]}, _unprefixed("prior_opt", arrays), dev)
-    parts = {
-        n: _split(arrays[f"kf/{n}"], arrays[f"kf/{n}_offsets"]) for n in ("voxels", "scores", "pix", "rgb", "depth")
-    }
-    kfs = []
-    for i, km in enumerate(meta["keyframes"]):
-        payload = StoredFrame(parts["pix"][i], parts["rgb"][i], parts["depth"][i], np.asarray(km["pose"], np.float64),
-                              Intrinsics(**km["intrinsics"]))
-        kfs.append(Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i], payload, km["selected"]))
-    m.keyframes.keyframes = kfs
-    m.keyframes.observed = arrays["kf/observed"].astype(bool)
-    m.keyframes.frames_since_insert = int(meta["keyframe_policy"]["frames_since_insert"])
-    m.keyframes.pruned = int(meta["keyframe_policy"]["pruned"])
+    m.keyframes.load_state_dict(meta, _unprefixed("kf", arrays))
     m.patterns.load_state_dict({"updates": meta["texture_updates"]}, _unprefixed("patterns", arrays))
     m.frames_mapped = int(meta["frames_mapped"])
     m.dropped = dict(meta["dropped"])
