@@ -197,41 +197,14 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
     )
     add("brick_wall", _quad([2.4, D - 0.01, H], [-2.0, 0, 0], [0, 0, -H]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "brick", h, w, (1.0, 0.62, 0.48), 256))
-    add(
-        "poster_astronaut",
-        _quad([W - 0.01, 2.9, 2.0], [0, 1.0, 0], [0, 0, -1.0]),
-        0.003,
-        "rich",
-        lambda h, w: tx.photo("astronaut", h, w),
-    )
-    add(
-        "poster_coffee",
-        _quad([3.2, D - 0.01, 2.3], [-0.7, 0, 0], [0, 0, -0.47]),
-        0.003,
-        "rich",
-        lambda h, w: tx.photo("coffee", h, w),
-    )
-    add(
-        "poster_chelsea",
-        _quad([0.01, 3.8, 2.0], [0, -0.9, 0], [0, 0, -0.6]),
-        0.003,
-        "rich",
-        lambda h, w: tx.photo("chelsea", h, w),
-    )
-    add(
-        "poster_rocket",
-        _quad([0.01, 2.5, 2.1], [0, -0.9, 0], [0, 0, -0.6]),
-        0.003,
-        "rich",
-        lambda h, w: tx.photo("rocket", h, w),
-    )
-    add(
-        "poster_hubble",
-        _quad([0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7]),
-        0.003,
-        "rich",
-        lambda h, w: tx.photo("hubble_deep_field", h, w),
-    )
+    for name, corner, across, down, photo in (  # photographs on the walls
+        ("poster_astronaut", [W - 0.01, 2.9, 2.0], [0, 1.0, 0], [0, 0, -1.0], "astronaut"),
+        ("poster_coffee", [3.2, D - 0.01, 2.3], [-0.7, 0, 0], [0, 0, -0.47], "coffee"),
+        ("poster_chelsea", [0.01, 3.8, 2.0], [0, -0.9, 0], [0, 0, -0.6], "chelsea"),
+        ("poster_rocket", [0.01, 2.5, 2.1], [0, -0.9, 0], [0, 0, -0.6], "rocket"),
+        ("poster_hubble", [0.01, 1.3, 1.9], [0, -0.8, 0], [0, 0, -0.7], "hubble_deep_field"),
+    ):
+        add(name, _quad(corner, across, down), 0.003, "rich", lambda h, w, p=photo: tx.photo(p, h, w))
     add("rug", _quad([2.0, 3.7, 0.008], [2.6, 0, 0], [0, -2.0, 0]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "gravel", h, w, (0.75, 0.55, 0.5), 300))
 
