@@ -263,10 +263,9 @@ class HashGrid(torch.nn.Module):
         if len(rows) == 0:
             return 0
         self.adam_steps += 1
-        b1, b2 = betas
-        c1 = 1 - b1 ** self.adam_steps
-        c2 = 1 - b2 ** self.adam_steps
         if self.backend == "numba":
+            b1, b2 = betas
+            c1, c2 = 1 - b1 ** self.adam_steps, 1 - b2 ** self.adam_steps
             self._kernels()[3](self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), rows.numpy(),
                                g.numpy(), lr, b1, b2, eps, c1, c2)
             return len(rows)

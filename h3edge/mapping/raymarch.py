@@ -60,21 +60,20 @@ def _march_kernel():
     return k.march, k.locate_prior
 
 
-def prior_crossings(origin: np.ndarray, dirs: np.ndarray, voxels, cfg: RenderConfig,
+def prior_crossings(origin: np.ndarray, dirs: np.ndarray, lookup: PriorLookup, cfg: RenderConfig,
                     near: np.ndarray | None = None) -> np.ndarray:
     """Ray parameter (= z-depth for camera-z-normalised ``dirs``) of each ray's first + to -
-    crossing of the prior SDF inside allocated voxels, searched from ``near`` (per ray; default
-    ``cfg.near``); -1 where there is none."""
+    crossing of the prior SDF inside allocated voxels (those of ``lookup``), searched from ``near``
+    (per ray; default ``cfg.near``); -1 where there is none."""
     out = np.empty(len(dirs), np.float64)
-    if len(voxels) == 0:
+    if len(lookup.vv) == 0:
         out[:] = -1
         return out
-    priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
     nears = np.full(len(dirs), cfg.near) if near is None else np.ascontiguousarray(near, np.float64)
-    tab = voxels.table()
+    tab = lookup.table
     return _march_kernel()[0](np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64), nears,
                               cfg.far, cfg.coarse_step, tab.hkeys, tab.hids, tab.box_lo, tab.box_hi,
-                              voxels.cfg.voxel_size, voxels.voxel_vertices, priors, cfg.exit_tolerance, out)
+                              lookup.vs, lookup.vv, lookup.priors, cfg.exit_tolerance, out)
 
 
 class PriorLookup:
@@ -132,14 +131,14 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, beta
     n = len(dirs)
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
-    t_hit = prior_crossings(origin, dirs, voxels, cfg)
-    lookup = PriorLookup(voxels)
+    lookup = PriorLookup(voxels)  # one voxel table and prior copy for every stage of this render
+    t_hit = prior_crossings(origin, dirs, lookup, cfg)
     todo = np.flatnonzero(t_hit > 0)
     for attempt in range(cfg.retries + 1):
         missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:
             break
-        t_new = prior_crossings(origin, dirs[missed], voxels, cfg,
+        t_new = prior_crossings(origin, dirs[missed], lookup, cfg,
                                 near=t_hit[missed] + (cfg.fine_samples // 2 + 1) * cfg.fine_step)
         t_hit[missed] = t_new
         todo = missed[t_new > 0]
