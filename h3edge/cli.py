@@ -145,13 +145,22 @@ def _profile_with_overrides(args: argparse.Namespace):
         profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, **svc))
     if getattr(args, "device", None):
         profile = profile.with_device(args.device)
+    ros = {k: v for k, v in (("base_to_camera", getattr(args, "base_to_camera", None)),
+                             ("key_style", getattr(args, "ros_keys", None))) if v}
+    if ros:
+        from h3edge.errors import InputError
+
+        try:
+            profile = dataclasses.replace(profile, ros=dataclasses.replace(profile.ros, **ros))
+        except ValueError as e:
+            raise InputError(f"--base-to-camera / --ros-keys: {e}") from None
     return profile
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     from h3edge.apps.daemon import serve
 
-    return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume)
+    return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume, ros=args.ros)
 
 
 def _cmd_sim_publish(args: argparse.Namespace) -> int:
@@ -378,6 +387,12 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--state-dir", help="checkpoint directory (default: the profile's; StateDirectory under systemd)")
     sv.add_argument("--resume", action="store_true", help="restore the map from its checkpoint and go on")
     sv.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
+    sv.add_argument("--ros", action="store_true",
+                    help="also take ROS 2 topics: colour, depth, camera info, odometry / pose / TF ([ros])")
+    sv.add_argument("--ros-keys", choices=["bridge", "rmw_zenoh"],
+                    help="how the topics appear on zenoh: zenoh-bridge-ros2dds (ns/topic) or rmw_zenoh")
+    sv.add_argument("--base-to-camera", help="ROS: the camera optical frame in the robot's base frame, "
+                    "'x y z qx qy qz qw', or 'identity' when the poses already are the camera's")
     _add_zenoh_args(sv)
     sv.set_defaults(func=_cmd_serve)
 

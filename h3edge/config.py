@@ -24,6 +24,7 @@ from h3edge.errors import InputError
 from h3edge.eval.evaluate import EvalConfig
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.onnx_decoders import InferenceConfig
+from h3edge.serving.ros_ingest import RosConfig
 from h3edge.serving.service import ServiceConfig
 
 # Shipped inside the package (package data); the repository's top-level profiles/ links here.
@@ -38,13 +39,14 @@ class ProfileError(InputError):
 class Profile:
     """A device profile: the mapper's settings (one TOML table per :class:`MapSettings` section:
     ``[mapper]``, ``[voxels]``, ...), plus evaluation, service and query-inference settings
-    (``[eval]``, ``[service]``, ``[inference]``)."""
+    (``[eval]``, ``[service]``, ``[inference]``, ``[ros]``)."""
 
     name: str = "default"
     mapping: MapSettings = dataclasses.field(default_factory=MapSettings)
     eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
     service: ServiceConfig = dataclasses.field(default_factory=ServiceConfig)
     inference: InferenceConfig = dataclasses.field(default_factory=InferenceConfig)
+    ros: RosConfig = dataclasses.field(default_factory=RosConfig)  # used by ``h3edge serve --ros``
 
     def map_settings(self) -> MapSettings:
         return self.mapping

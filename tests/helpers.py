@@ -8,7 +8,8 @@ import torch
 from h3edge.geometry.camera import pixel_rays_camera
 from h3edge.mapping.mesh import SdfFn
 from h3edge.mapping.trainer import RayBatch
-from h3edge.mapping.voxels import CORNERS, pack
+from h3edge.mapping.trilinear import CORNERS
+from h3edge.mapping.voxels import pack
 
 
 def rays_from_frame(frame, pixels: torch.Tensor, device="cpu") -> RayBatch:

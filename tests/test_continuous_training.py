@@ -92,13 +92,12 @@ def test_live_replay_trains_while_the_camera_is_slow_and_settles(tiny_scene):
 
 
 def test_replay_counts_survive_a_checkpoint(tiny_scene):
-    from h3edge.mapping.persistence import mapper_state, restore_mapper
 
     seq = ReplicaSequence(tiny_scene)
     m = Mapper(LEAN)
     m.process(seq[0])
     m.train_between_frames()
-    meta, arrays = mapper_state(m)
-    r = restore_mapper(LEAN, meta, arrays)
+    meta, arrays = m.state_dict()
+    r = Mapper.from_state_dict(LEAN, meta, arrays)
     assert r.iterations == m.iterations == {"frame": LEAN.mapper.iterations, "between_frames": 1}
     assert np.isfinite(r.train_between_frames()["loss"])

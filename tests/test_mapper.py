@@ -126,12 +126,12 @@ def test_render_finds_an_analytic_plane():
     with torch.no_grad():
         fld.sdf_mlp[-1].weight.zero_()
         fld.sdf_mlp[-1].bias.zero_()
-    rgb, out = MapRenderer(fld, vm, beta=0.05).render(intr, c2w)
+    rgb, out = MapRenderer(fld, vm).render(intr, c2w)
     hit = out > 0
     assert hit.mean() > 0.95
     assert np.abs(out[hit] - depth[hit]).max() < 0.003
     with pytest.raises(ValueError, match="exceeds the cap"):
-        MapRenderer(fld, vm, 0.05, RenderConfig(max_pixels=100)).render(intr, c2w)
+        MapRenderer(fld, vm, RenderConfig(max_pixels=100)).render(intr, c2w)
 
 
 def test_prior_adam_keeps_state_across_growth():

@@ -18,7 +18,7 @@ from h3edge.io.protocol import FrameMessage, PoseMessage, decode_frame, encode_f
 from h3edge.io.replica import ReplicaSequence
 from h3edge.profiling.report import load_document
 from h3edge.profiling.timing import read_durations
-from h3edge.serving.checkpoint import read_checkpoint
+from h3edge.serving.checkpoint_file import read_checkpoint
 from h3edge.serving.transport import Keys, RemoteError, open_session, publish_sequence, query, wait_for_service
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"

@@ -25,7 +25,7 @@ from h3edge.io.protocol import (
     encode_pose,
 )
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
+from h3edge.serving.checkpoint_file import CheckpointError, read_checkpoint, write_checkpoint
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.systemd import Notifier
 
@@ -275,7 +275,7 @@ def test_deploy_plan_sizes_the_unit_and_refuses_what_does_not_fit(tmp_path):
 
 
 def test_unwritable_state_directory_is_a_one_line_error(tmp_path):
-    from h3edge.serving.checkpoint import CheckpointError, check_writable
+    from h3edge.serving.checkpoint_file import CheckpointError, check_writable
 
     check_writable(tmp_path / "a" / "b")  # created
     (tmp_path / "file").write_text("x")
@@ -353,7 +353,7 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     from h3edge.mapping.field import FieldConfig
     from h3edge.mapping.mapper import MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
-    from h3edge.serving.checkpoint import previous_path
+    from h3edge.serving.checkpoint_file import previous_path
     from h3edge.serving.service import MapService, ServiceConfig
 
     settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128),
@@ -364,8 +364,8 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     svc = MapService(settings, cfg)
     for i in range(2):
         svc.mapper.process(seq[i])
-        svc._write(*svc._capture())
-    ckpt = svc.checkpoint_path
+        svc.checkpoints.write(svc.checkpoints.capture(svc.mapper))
+    ckpt = svc.checkpoints.path
     assert (
         read_checkpoint(previous_path(ckpt))[0]["frames_mapped"] == 1 and read_checkpoint(ckpt)[0]["frames_mapped"] == 2
     )
@@ -383,7 +383,7 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     assert ok.stop() is True
     bad = MapService(settings, cfg)
     bad.mapper.process(seq[0])
-    bad.checkpoint_path = tmp_path / "not-a-dir" / "x" / "map.h3ckpt"
+    bad.checkpoints.path = tmp_path / "not-a-dir" / "x" / "map.h3ckpt"
     (tmp_path / "not-a-dir").write_text("a file where a directory should be")
     assert bad.stop() is False and bad.last_error["code"] == "checkpoint"
 
@@ -514,10 +514,10 @@ def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):
         key_expr = "h3edge/m/**"
 
     server = ZenohServer(svc, session=None, map_id="m")
-    before = svc.checkpoint_path.stat().st_mtime_ns
+    before = svc.checkpoints.path.stat().st_mtime_ns
     with pytest.raises(QueryError, match="exact key h3edge/m/save"):
         server._save(WildcardQuery())
-    assert svc.checkpoint_path.stat().st_mtime_ns == before
+    assert svc.checkpoints.path.stat().st_mtime_ns == before
 
 
 @pytest.mark.parametrize("payload", [b"[" * 100_000 + b"]" * 100_000,

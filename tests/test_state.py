@@ -13,7 +13,6 @@ from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
-from h3edge.mapping.persistence import mapper_state, restore_mapper
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
@@ -61,10 +60,10 @@ def test_keyframes_keep_a_pixel_subset(half_mapped):
 def test_restored_mapper_continues_identically(half_mapped):
     """Restore from the captured state: identical parameters; mapping goes on from there."""
     seq, m = half_mapped
-    meta, arrays = mapper_state(m)
+    meta, arrays = m.state_dict()
     # sparse tables: far fewer rows stored than the tables hold
     assert len(arrays["grid/geo/rows"]) < len(m.field.geo_grid.table)
-    r = restore_mapper(SETTINGS, meta, arrays)
+    r = Mapper.from_state_dict(SETTINGS, meta, arrays)
     a, b = _params(m), _params(r)
     for k in a:
         assert torch.equal(a[k], b[k]), k
@@ -86,10 +85,10 @@ def test_restored_mapper_continues_identically(half_mapped):
 
 def test_restore_refuses_other_configuration(half_mapped):
     _, m = half_mapped
-    meta, arrays = mapper_state(m)
+    meta, arrays = m.state_dict()
     other = dataclasses.replace(SETTINGS, field=dataclasses.replace(SETTINGS.field, sdf_hidden=32))
     with pytest.raises(ValueError, match="shape"):
-        restore_mapper(other, meta, arrays)
+        Mapper.from_state_dict(other, meta, arrays)
 
 
 def test_frozen_view_is_independent(half_mapped):

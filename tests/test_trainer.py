@@ -14,11 +14,11 @@ from tests.helpers import rays_from_frame
 
 def test_sample_depths_layout():
     cfg = TrainConfig()
-    t, b0 = sample_depths(torch.tensor([2.0, 0.5]), cfg, 0.05, torch.Generator().manual_seed(0))
+    t, b0 = sample_depths(torch.tensor([2.0, 0.5]), cfg, 0.05, 0.05, torch.Generator().manual_seed(0))
     assert t.shape == (2, cfg.free_samples + cfg.band_samples) and b0 == cfg.free_samples
     assert (t.diff(dim=1) >= 0).all()  # sorted along each ray
     assert torch.allclose(t[0, b0:], 2.0 + 0.01 * torch.arange(-5, 6, dtype=torch.float32))
-    assert (t[0, :b0] <= 1.95).all() and (t[:, :b0] >= cfg.near).all()
+    assert (t[0, :b0] <= 1.95).all() and (t[:, :b0] >= 0.05).all()
 
 
 def test_training_reduces_losses(tiny_scene):
@@ -38,10 +38,11 @@ def test_training_reduces_losses(tiny_scene):
 
     def eval_error():
         with torch.no_grad():
-            t, b0 = sample_depths(eval_rays.depth, cfg, 0.05, g)
+            t, b0 = sample_depths(eval_rays.depth, cfg, 0.05, 0.05, g)
             pts = eval_rays.origins[:, None] + eval_rays.dirs[:, None] * t[..., None]
             sdf, inside = fld.sdf(pts.reshape(-1, 3), voxels)
-            out = composite(sdf.reshape(t.shape)[:, b0:], t[:, b0:], None, cfg.beta, inside.reshape(t.shape)[:, b0:])
+            out = composite(sdf.reshape(t.shape)[:, b0:], t[:, b0:], None, fld.cfg.beta,
+                            inside.reshape(t.shape)[:, b0:])
             ok = out.hit & (eval_rays.depth > 0)
             return float((out.depth[ok] - eval_rays.depth[ok]).abs().mean()), float(ok.float().mean())
 
@@ -50,7 +51,7 @@ def test_training_reduces_losses(tiny_scene):
     for it in range(30):
         f = frames[it % 3]
         hist.append(train_step(fld, voxels, rays_from_frame(f, torch.randint(0, n_pix, (1024,), generator=g)),
-                               opt, cfg, g))
+                               opt, cfg, 0.05, g))
     err1, hit = eval_error()
     first, last = hist[0], np.mean([h["loss"] for h in hist[-5:]])
     assert last < 0.5 * first["loss"]
@@ -77,10 +78,10 @@ def test_free_space_samples_land_in_voxels(tiny_scene):
         ok = (rays.depth > 0)[:, None].expand_as(t).reshape(-1).numpy()
         return float((vox >= 0)[ok].mean())
 
-    t_all, b0 = sample_depths(rays.depth, cfg, 0.05, g)
-    t_vox = free_depths_in_voxels(rays, voxels, cfg, 0.05, g)
+    t_all, b0 = sample_depths(rays.depth, cfg, 0.05, 0.05, g)
+    t_vox = free_depths_in_voxels(rays, voxels, cfg, 0.05, 0.05, g)
     assert t_vox.shape == (2000, cfg.free_samples) and (t_vox.diff(dim=1) >= 0).all()
     valid = rays.depth > 0
-    assert (t_vox[valid] <= (rays.depth[valid] - 0.05)[:, None] + 1e-6).all() and (t_vox >= cfg.near).all()
+    assert (t_vox[valid] <= (rays.depth[valid] - 0.05)[:, None] + 1e-6).all() and (t_vox >= 0.05).all()
     stratified, in_voxels = share_inside(t_all[:, :b0]), share_inside(t_vox)
     assert in_voxels > stratified + 0.2, (stratified, in_voxels)

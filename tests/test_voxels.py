@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from h3edge.geometry.camera import Intrinsics, look_at
-from h3edge.mapping.voxels import CORNERS, VoxelConfig, VoxelMap, lookup, pack, unpack
+from h3edge.mapping.trilinear import CORNERS
+from h3edge.mapping.voxels import VoxelConfig, VoxelMap, lookup, pack, unpack
 
 INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 WALL_Y = 2.03  # wall plane y = 2.03, camera at the origin looking along +y

@@ -24,11 +24,14 @@ log = logging.getLogger(__name__)
 
 
 def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event | None = None,
-          notifier: Notifier | None = None) -> int:
+          notifier: Notifier | None = None, ros: bool = False) -> int:
+    """Run the service until SIGTERM / SIGINT / ``stop``; ``ros``: also take the ROS 2 topics of the
+    profile's ``[ros]`` table. The exit code."""
     stop = stop or threading.Event()
     notifier = notifier or Notifier()
     cfg = profile.service
-    service = MapService(profile.map_settings(), cfg, profile.name, resume=resume, inference=profile.inference)
+    service = MapService(profile.map_settings(), cfg, profile.name, resume=resume, inference=profile.inference,
+                         ros=profile.ros if ros else None)
 
     def on_signal(signum, _frame) -> None:
         log.info("signal %d: stopping", signum)
@@ -46,7 +49,7 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
         service.start()
         notifier.ready(f"mapping {cfg.map_id}")
         log.info("h3edge serving map %r (profile %s, device %s, state %s)", cfg.map_id, profile.name,
-                 service.mapper.device, service.checkpoint_path)
+                 service.mapper.device, service.checkpoints.path)
         ping = notifier.watchdog_interval()
         last_status = 0.0
         while not stop.wait(min(ping or 1.0, 1.0)):

@@ -22,8 +22,7 @@ from h3edge.config import load_profile
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
-from h3edge.mapping.persistence import mapper_state, restore_mapper
-from h3edge.serving.checkpoint import read_checkpoint, write_checkpoint
+from h3edge.serving.checkpoint_file import read_checkpoint, write_checkpoint
 from h3edge.sim.make import PRESETS, ensure_scene
 
 log = logging.getLogger(__name__)
@@ -44,12 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     ckpt = work / "map.h3ckpt"
     if ckpt.exists():
         header, arrays = read_checkpoint(ckpt)
-        m = restore_mapper(settings, header["state"], arrays)
+        m = Mapper.from_state_dict(settings, header["state"], arrays)
     else:
         m = Mapper(settings)
         for i in range(0, len(seq), 4):
             m.process(seq[i])
-        meta, arrays = mapper_state(m)
+        meta, arrays = m.state_dict()
         write_checkpoint(ckpt, {"state": meta, "frames_mapped": m.frames_mapped}, arrays)
     cfg = prof.inference if prof.inference.decoders == "onnx" else InferenceConfig(decoders="onnx")
     runtime = DecoderRuntime(cfg, cache_dir=work / "trt_cache")

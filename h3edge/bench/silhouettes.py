@@ -203,19 +203,19 @@ def mapped(seq, settings, n: int, work: Path) -> Mapper:
     settings (everything but ``render``) and sequence when ``work`` has one."""
     import hashlib
 
-    from h3edge.mapping.persistence import mapper_state, restore_mapper
-    from h3edge.serving.checkpoint import read_checkpoint, write_checkpoint
+    from h3edge.mapping.mapper import Mapper
+    from h3edge.serving.checkpoint_file import read_checkpoint, write_checkpoint
 
     key = {k: v for k, v in dataclasses.asdict(settings).items() if k != "render"}
     digest = hashlib.sha256(json.dumps([str(seq.root), n, key], sort_keys=True, default=str).encode()).hexdigest()[:16]
     ckpt = work / f"map-{digest}.h3ckpt"
     if ckpt.is_file():
         header, arrays = read_checkpoint(ckpt)
-        return restore_mapper(settings, header["state"], arrays)
+        return Mapper.from_state_dict(settings, header["state"], arrays)
     m = Mapper(settings)
     for i in range(n):
         m.process(seq[i])
-    meta, arrays = mapper_state(m)
+    meta, arrays = m.state_dict()
     work.mkdir(parents=True, exist_ok=True)
     write_checkpoint(ckpt, {"state": meta}, arrays)
     return m

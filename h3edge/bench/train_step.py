@@ -33,12 +33,12 @@ log = logging.getLogger("h3edge.bench.train_step")
 def band_share(m: Mapper, rays, floor: float) -> float:
     """Share of the in-voxel band samples of ``rays`` whose colour a floor of ``floor`` evaluates."""
     cfg = m.train_cfg
-    t, b0 = sample_depths(rays.depth, cfg, m.voxels.cfg.truncation, m.generator)
+    t, b0 = sample_depths(rays.depth, cfg, m.voxels.cfg.truncation, m.settings.render.near, m.generator)
     pts = (rays.origins[:, None] + rays.dirs[:, None] * t[..., None])[:, b0:].reshape(-1, 3)
     with torch.no_grad():
         sdf, inside = m.field.sdf(pts, m.voxels, m.voxels.locate(pts.cpu().numpy()))
     sdf, inside = sdf.reshape(len(t), -1), inside.reshape(len(t), -1)
-    return float(color_samples(sdf, cfg.beta, inside, floor).sum() / max(int(inside.sum()), 1))
+    return float(color_samples(sdf, m.field.cfg.beta, inside, floor).sum() / max(int(inside.sum()), 1))
 
 
 def main(argv=None) -> int:
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
             cfg = dataclasses.replace(m.train_cfg, color_weight_floor=floor)
             for b in batches:
                 t0 = time.perf_counter()
-                train_step(m.field, m.voxels, b, m.optimizer, cfg, m.generator, m.prior_opt)
+                train_step(m.field, m.voxels, b, m.optimizer, cfg, m.settings.render.near, m.generator, m.prior_opt)
                 if rnd:
                     times[floor].append(time.perf_counter() - t0)
     base = float(np.median(times[args.floors[0]]))

@@ -18,6 +18,11 @@ def pose_from_tq(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     return T
 
 
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix (the inverse of :func:`pose_from_tq`'s)."""
+    return Rotation.from_matrix(np.asarray(R, float)[:3, :3]).as_quat()
+
+
 def interpolate_pose(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray:
     """Rigid pose a fraction ``alpha`` of the way from ``a`` to ``b`` (SLERP rotation, linear translation)."""
     rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))

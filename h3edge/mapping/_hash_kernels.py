@@ -10,6 +10,8 @@ import math
 import numba as nb
 import numpy as np
 
+from h3edge.mapping._trilinear_kernel import corner_weight
+
 
 @nb.njit(inline="always", fastmath=True)
 def cell(xn, i, scale):
@@ -26,14 +28,11 @@ def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, d0, d1, d2, c):
     cx = ix + (c & 1)
     cy = iy + ((c >> 1) & 1)
     cz = iz + ((c >> 2) & 1)
-    wx = fx if (c & 1) else 1.0 - fx
-    wy = fy if ((c >> 1) & 1) else 1.0 - fy
-    wz = fz if ((c >> 2) & 1) else 1.0 - fz
     if side > 0 and 0 <= cx < side and 0 <= cy < side and 0 <= cz < side:
         h = cx + side * (cy + side * cz)
     else:
         h = (cx * p0 + d0) ^ (cy * p1 + d1) ^ (cz * p2 + d2)
-    return h & (T - 1), wx * wy * wz
+    return h & (T - 1), corner_weight(fx, fy, fz, c)
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def fwd(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):

@@ -9,6 +9,8 @@ import math
 import numba as nb
 import numpy as np
 
+from h3edge.mapping._trilinear_kernel import corner_weight
+
 _BITS = 21  # as h3edge.mapping.voxels packs keys
 _OFF = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
@@ -56,8 +58,7 @@ def interpolate(vid, ux, uy, uz, vv, priors):
     """Trilinear prior at fraction (ux, uy, uz) inside voxel ``vid``."""
     s = 0.0
     for c in range(8):
-        w = (ux if c & 1 else 1.0 - ux) * (uy if (c >> 1) & 1 else 1.0 - uy) * (uz if (c >> 2) & 1 else 1.0 - uz)
-        s += w * priors[vv[vid, c]]
+        s += corner_weight(ux, uy, uz, c) * priors[vv[vid, c]]
     return s
 
 @nb.njit(inline="always")

@@ -37,6 +37,9 @@ class FieldConfig:
     color_hidden: int = 64
     color_layers: int = 2
     backend: str = "auto"  # hash-grid backend: auto | torch | numba
+    # beta: width of the volume-rendering kernel sigma(s/beta) sigma(-s/beta) on this field's SDF
+    # (truncation units, authors: 0.05), used by training and by rendering alike
+    beta: float = 0.05
 
 
 def mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from h3edge.mapping.sparse_adam import lazy_adam_rows
+from h3edge.mapping.trilinear import CORNERS, corner_weights
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -84,9 +85,8 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction 
     g = torch.floor(p)
     f = p - g
     g = g.long()
-    offs = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], device=dev)  # (8, 3)
-    v = g[:, :, None, :] + offs[None, None]  # (N, L, 8, 3)
-    w = torch.where(offs[None, None].bool(), f[:, :, None, :], 1 - f[:, :, None, :]).prod(-1)  # (N, L, 8)
+    v = g[:, :, None, :] + torch.from_numpy(CORNERS).to(dev)[None, None]  # (N, L, 8, 3)
+    w = corner_weights(f)  # (N, L, 8)
     side = dense[None, :, None]
     dense_idx = v[..., 0] + side * (v[..., 1] + side * v[..., 2])
     hashed = (v[..., 0] * primes[0] + d[0]) ^ (v[..., 1] * primes[1] + d[1]) ^ (v[..., 2] * primes[2] + d[2])
@@ -212,6 +212,25 @@ class HashGrid(torch.nn.Module):
         if self._kern is not None:
             memo[id(self._kern)] = self._kern
         return memo
+
+    def sparse_state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """The table and its Adam state, sparsely: only the rows the optimiser ever moved (the others
+        still hold the seeded initialisation a grid built with the same spec and seed recreates)."""
+        with torch.no_grad():
+            rows = torch.nonzero(((self.adam_v != 0) | (self.adam_m != 0)).any(1)).squeeze(1)
+            arrays = {"rows": rows.cpu().numpy().copy()}
+            for part in ("table", "adam_m", "adam_v"):
+                arrays[part] = getattr(self, part)[rows].detach().cpu().numpy().copy()
+        return {"adam_steps": self.adam_steps}, arrays
+
+    def load_sparse_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Inverse of :meth:`sparse_state_dict`, on a grid freshly built with the same spec and seed."""
+        dev = self.table.device
+        with torch.no_grad():
+            rows = torch.from_numpy(np.asarray(arrays["rows"])).long().to(dev)
+            for part in ("table", "adam_m", "adam_v"):
+                getattr(self, part)[rows] = torch.from_numpy(np.asarray(arrays[part])).to(dev)
+        self.adam_steps = int(meta["adam_steps"])
 
     def _kernels(self):
         if self._kern is None:

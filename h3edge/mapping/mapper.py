@@ -33,6 +33,7 @@ from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, r
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.gradient import color_gradient
+from h3edge.mapping.hashgrid import HashGrid
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, StoredFrame, gradient_scores
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
@@ -45,6 +46,7 @@ from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
+STATE_VERSION = 1  # of Mapper.state_dict
 
 
 @dataclass(frozen=True)
@@ -300,7 +302,8 @@ class Mapper:
             return self._step(self._sample_rays([k.payload for k in kfs]), "between_frames")
 
     def _step(self, rays: RayBatch, when: str) -> dict:
-        losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.generator,
+        losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.settings.render.near,
+                            self.generator,
                             self.prior_opt)
         self.iterations[when] += 1
         if self.step_hook is not None:
@@ -333,8 +336,8 @@ class Mapper:
         """The live map as a :class:`MapView` (``.frozen()`` copies it for queries beside training)."""
         if self.field is None:
             raise RuntimeError("nothing mapped yet")
-        return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.train_cfg.beta,
-                       self.settings.render, self.cfg.mesh_resolution, self.frames_mapped,
+        return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.settings.render,
+                       self.cfg.mesh_resolution, self.frames_mapped,
                        self.cfg.mesh_min_support)
 
     def renderer(self) -> MapRenderer:
@@ -351,6 +354,96 @@ class Mapper:
             return trimesh.Trimesh()
         with self.timings.time("mesh"):
             return self.view().mesh(resolution, aabb, color)
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """Everything needed to resume, as a JSON-able ``meta`` dict and named numpy arrays (what a
+        checkpoint holds; call between frames, on the mapper's thread). Each component contributes
+        its own ``state_dict``; hash tables are stored sparsely (:meth:`HashGrid.sparse_state_dict`)."""
+        if self.field is None:
+            raise RuntimeError("nothing mapped yet")
+        meta: dict = {"state_version": STATE_VERSION, "frames_mapped": self.frames_mapped,
+                      "dropped": dict(self.dropped), "last_timestamp": self.last_timestamp,
+                      "iterations": dict(self.iterations), "bound": self.bound.tolist(),
+                      "rng": self.rng.bit_generator.state, "grid_steps": {}}
+        arrays: dict[str, np.ndarray] = {}
+        for name, grid in self._named_grids().items():
+            gmeta, garrays = grid.sparse_state_dict()
+            meta["grid_steps"][name] = gmeta["adam_steps"]
+            arrays.update(_prefixed(f"grid/{name}", garrays))
+        grid_parts = tuple(f"{p}.{part}" for p in self._grid_paths() for part in ("table", "adam_m", "adam_v"))
+        for k, v in self.field.state_dict().items():
+            if k not in grid_parts:
+                arrays[f"field/{k}"] = v.detach().cpu().numpy().copy()
+        opt = self.optimizer.state_dict()
+        meta["optimizer_groups"] = opt["param_groups"]
+        for i, st in opt["state"].items():
+            for k, v in st.items():
+                arrays[f"opt/{i}/{k}"] = v.detach().cpu().numpy().copy() if torch.is_tensor(v) else np.asarray(v)
+        arrays["torch_generator"] = self.generator.get_state().numpy().copy()
+        for prefix, part in (("voxels", self.voxels), ("prior_opt", self.prior_opt), ("kf", self.keyframes),
+                             ("patterns", self.patterns)):
+            pmeta, parrays = part.state_dict()
+            meta.update(_renamed_meta(prefix, pmeta))
+            arrays.update(_prefixed(prefix, parrays))
+        return meta, arrays
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Take the state :meth:`state_dict` captured, on a mapper built with the same settings and
+        the captured ``bound`` (:meth:`from_state_dict` does both). ValueError when it does not fit."""
+        if meta.get("state_version") != STATE_VERSION:
+            raise ValueError(f"map state version {meta.get('state_version')} is not {STATE_VERSION}")
+        if self.field is None or not np.allclose(self.bound, np.asarray(meta["bound"], np.float64)):
+            raise ValueError("load_state_dict needs a mapper built with the state's bound (use from_state_dict)")
+        for name, grid in self._named_grids().items():
+            grid.load_sparse_state_dict({"adam_steps": meta["grid_steps"][name]},
+                                        _unprefixed(f"grid/{name}", arrays))
+        current = self.field.state_dict()
+        saved = {k[len("field/"):]: torch.from_numpy(np.asarray(v)) for k, v in arrays.items()
+                 if k.startswith("field/")}
+        for k, v in saved.items():
+            if k not in current:
+                raise ValueError(f"checkpoint field entry {k!r} does not exist in this configuration")
+            per_voxel = k.startswith("texture.") and k.split(".")[1] in QuasiHeteroTexture.PER_VOXEL
+            if not per_voxel and current[k].shape != v.shape:
+                raise ValueError(f"checkpoint field entry {k!r} has shape {tuple(v.shape)}, "
+                                 f"this configuration {tuple(current[k].shape)}")
+        with torch.no_grad():
+            self.field.load_state_dict(saved, strict=False)
+        state: dict = {}
+        for k, v in arrays.items():
+            if k.startswith("opt/"):
+                _, i, name = k.split("/")
+                vt = torch.from_numpy(np.array(v))
+                state.setdefault(int(i), {})[name] = vt if name != "step" else vt.to(torch.float32)
+        self.optimizer.load_state_dict({"state": state, "param_groups": meta["optimizer_groups"]})
+        self.generator.set_state(torch.from_numpy(np.asarray(arrays["torch_generator"])))
+        self.voxels.load_state_dict(meta, _unprefixed("voxels", arrays))
+        self.prior_opt.load_state_dict(_original_meta("prior_opt", meta), _unprefixed("prior_opt", arrays),
+                                       self.device)
+        self.keyframes.load_state_dict(meta, _unprefixed("kf", arrays))
+        self.patterns.load_state_dict(_original_meta("patterns", meta), _unprefixed("patterns", arrays))
+        self.frames_mapped = int(meta["frames_mapped"])
+        self.dropped = dict(meta["dropped"])
+        self.last_timestamp = meta["last_timestamp"]
+        self.iterations.update({k: int(v) for k, v in meta.get("iterations", {}).items() if k in self.iterations})
+        self.rng.bit_generator.state = meta["rng"]
+
+    @classmethod
+    def from_state_dict(cls, settings: MapSettings, meta: dict, arrays: dict[str, np.ndarray]) -> Mapper:
+        """A mapper in the captured state (``settings`` must be the ones it ran with)."""
+        if meta.get("state_version") != STATE_VERSION:
+            raise ValueError(f"map state version {meta.get('state_version')} is not {STATE_VERSION}")
+        m = cls(settings, bound=np.asarray(meta["bound"], np.float64))
+        m.load_state_dict(meta, arrays)
+        return m
+
+    def _named_grids(self) -> dict[str, HashGrid]:
+        return {"geo": self.field.geo_grid, "tex": self.field.texture.grid}
+
+    @staticmethod
+    def _grid_paths() -> tuple[str, str]:
+        return ("geo_grid", "texture.grid")
 
     def stats(self) -> dict:
         kf_bytes = sum(k.payload.nbytes for k in self.keyframes.keyframes if k.payload is not None)
@@ -377,3 +470,26 @@ class Mapper:
                 "texture_patterns": self.patterns.nbytes,
             },
         }
+
+
+def _prefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {f"{prefix}/{k}": v for k, v in arrays.items()}
+
+
+def _unprefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    n = len(prefix) + 1
+    return {k[n:]: v for k, v in arrays.items() if k.startswith(prefix + "/")}
+
+
+# components whose meta keys are stored under another name (checkpoints written before the
+# components had their own state_dict keep loading)
+_META_NAMES = {"prior_opt": {"steps": "prior_steps"}, "patterns": {"updates": "texture_updates"}}
+
+
+def _renamed_meta(prefix: str, meta: dict) -> dict:
+    names = _META_NAMES.get(prefix, {})
+    return {names.get(k, k): v for k, v in meta.items()}
+
+
+def _original_meta(prefix: str, meta: dict) -> dict:
+    return {k: meta[stored] for k, stored in _META_NAMES[prefix].items()}

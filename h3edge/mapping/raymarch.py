@@ -31,7 +31,9 @@ from h3edge.mapping.volume_rendering import composite
 
 @dataclass(frozen=True)
 class RenderConfig:
-    near: float = 0.05  # m (z-depth)
+    # the z-depth range along a ray where the map is sampled: by the renderer, and from ``near`` by
+    # the trainer's free-space samples
+    near: float = 0.05  # m
     far: float = 10.0  # m, the sensor's max depth (authors: 10 m)
     coarse_step: float = 0.02  # m, prior march step along z
     # |prior| (truncation units) within which a ray leaving (entering) the allocated region counts as
@@ -51,7 +53,7 @@ class RenderConfig:
     # then render the window at its first crossing (0: off, such rays render empty)
     fallback_step: float = 0.01
     fallback_chunk: int = 2048  # rays per fallback batch (x up to (far - near) / step samples)
-    max_pixels: int = 1920 * 1080  # larger requests are refused
+    max_pixels: int = 1280 * 960  # render requests (queries, offline) above this are refused
 
 
 def _march_kernel():
@@ -122,7 +124,7 @@ class PriorLookup:
 
 
 @torch.no_grad()
-def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, beta: float, cfg: RenderConfig
+def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray whose
     prior crossing gets no rendering weight (the residual moved the surface away from it) marches
@@ -135,7 +137,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, beta
     t_hit = prior_crossings(origin, dirs, lookup, cfg)
     todo = np.flatnonzero(t_hit > 0)
     for attempt in range(cfg.retries + 1):
-        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, beta, cfg, dev, depth, color)
+        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:
             break
         t_new = prior_crossings(origin, dirs[missed], lookup, cfg,
@@ -149,7 +151,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, beta
             t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], cfg, dev)
             found = empty[t_hit[empty] > 0]
             if len(found):
-                _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, beta, cfg, dev, depth, color)
+                _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
     return color, depth
 
 
@@ -189,7 +191,7 @@ def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, beta, cfg, dev, depth, color) -> np.ndarray:
+def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, dev, depth, color) -> np.ndarray:
     """Render ``rays`` around their crossings into ``depth`` / ``color``; returns the rays without weight."""
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
     o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
@@ -202,7 +204,7 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, beta, c
         prior, vox = lookup(pts.cpu().numpy())
         sdf, inside = neural_field.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
                                                      torch.from_numpy(vox >= 0).to(dev)))
-        out = composite(sdf.reshape(t.shape), t, None, beta, inside.reshape(t.shape), cfg.min_weight)
+        out = composite(sdf.reshape(t.shape), t, None, neural_field.cfg.beta, inside.reshape(t.shape), cfg.min_weight)
         hit = out.hit
         surf = o + d[hit] * out.depth[hit, None]
         col = neural_field.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
@@ -216,14 +218,14 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, beta, c
 class MapRenderer:
     """:class:`~h3edge.eval.evaluate.ViewRenderer` over a field and its voxel map."""
 
-    def __init__(self, neural_field, voxels, beta: float, cfg: RenderConfig = RenderConfig()):
-        self.field, self.voxels, self.beta, self.cfg = neural_field, voxels, beta, cfg
+    def __init__(self, neural_field, voxels, cfg: RenderConfig = RenderConfig()):
+        self.field, self.voxels, self.cfg = neural_field, voxels, cfg
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colour uint8 (H, W, 3) and z-depth float32 (H, W) metres, 0 where nothing is mapped."""
         if intr.width * intr.height > self.cfg.max_pixels:
             raise ValueError(f"render of {intr.width}x{intr.height} exceeds the cap of {self.cfg.max_pixels} pixels")
         o, d = pixel_rays_world(intr, np.asarray(c2w, np.float64))
-        color, depth = render_rays(self.field, self.voxels, o, d.reshape(-1, 3), self.beta, self.cfg)
+        color, depth = render_rays(self.field, self.voxels, o, d.reshape(-1, 3), self.cfg)
         rgb = np.clip(color * 255 + 0.5, 0, 255).astype(np.uint8).reshape(intr.height, intr.width, 3)
         return rgb, depth.reshape(intr.height, intr.width)

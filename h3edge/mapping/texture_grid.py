@@ -65,6 +65,15 @@ class QuasiHeteroTexture(nn.Module):
         self.register_buffer("n_dirs", torch.zeros(0, dtype=torch.long, device=dev))
         self.register_buffer("affine", torch.zeros(0, M, 3, 3, device=dev))
 
+    PER_VOXEL = ("centres", "weak", "n_dirs", "affine")  # buffers sized by the map, not the config
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        for name in self.PER_VOXEL:  # take the saved map's voxel count before torch checks shapes
+            saved = state_dict.get(prefix + name)
+            if saved is not None:
+                setattr(self, name, torch.empty_like(saved, device=getattr(self, name).device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     @torch.no_grad()
     def set_warps(self, voxel_ijk: np.ndarray, voxel_size: float, classes: np.ndarray, dirs: np.ndarray,
                   n_dirs: np.ndarray) -> None:

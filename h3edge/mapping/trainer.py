@@ -29,7 +29,6 @@ from h3edge.mapping.voxels import PriorAdam, VoxelMap
 @dataclass(frozen=True)
 class TrainConfig:
     lr: float = 1e-2  # one Adam learning rate for everything (authors)
-    beta: float = 0.05  # render kernel on SDF in truncation units (authors)
     step: float = 0.01  # m between band samples (the paper's 1 cm)
     band_samples: int = 11  # covers +-5 cm = the truncation band
     free_samples: int = 8
@@ -37,7 +36,6 @@ class TrainConfig:
     # measured no better than stratified samples on real Kinect data (docs/silhouettes.md), off
     free_in_voxels: bool = False
     free_candidates: int = 64  # stratified candidates per ray the in-voxel free samples are drawn from
-    near: float = 0.05
     # colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel
     # band sample, the paper's); the skipped samples carry < floor of a ray's colour each
     color_weight_floor: float = 1e-3
@@ -53,20 +51,21 @@ class RayBatch:
     color: torch.Tensor  # (R, 3) in [0, 1]
 
 
-def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float,
+def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float, near: float,
                   generator: torch.Generator | None = None) -> tuple[torch.Tensor, int]:
-    """Sample z-depths (R, free + band), sorted along each row; returns them and where the band starts."""
+    """Sample z-depths (R, free + band), sorted along each row, the free ones from ``near`` (m,
+    :attr:`RenderConfig.near`); returns them and where the band starts."""
     r = len(depth)
     half = (cfg.band_samples - 1) / 2
     band = depth[:, None] + cfg.step * (torch.arange(cfg.band_samples, dtype=depth.dtype, device=depth.device) - half)
-    far = (depth - truncation).clamp(min=cfg.near)
+    far = (depth - truncation).clamp(min=near)
     u = (torch.arange(cfg.free_samples, device=depth.device, dtype=depth.dtype)
          + torch.rand(r, cfg.free_samples, generator=generator, device=depth.device, dtype=depth.dtype))
-    free = cfg.near + (far - cfg.near)[:, None] * u / cfg.free_samples
+    free = near + (far - near)[:, None] * u / cfg.free_samples
     return torch.cat([free, band], 1), cfg.free_samples
 
 
-def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, truncation: float,
+def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, truncation: float, near: float,
                           generator: torch.Generator | None = None) -> torch.Tensor:
     """``cfg.free_samples`` z-depths per ray (R, F), sorted, between ``near`` and depth - truncation,
     inside allocated voxels where the ray has enough of them: picked at random among
@@ -77,9 +76,9 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     depth = rays.depth
     r, m, k = len(depth), cfg.free_candidates, cfg.free_samples
     dev, dt = depth.device, depth.dtype
-    far = (depth - truncation).clamp(min=cfg.near)
+    far = (depth - truncation).clamp(min=near)
     u = torch.arange(m, device=dev, dtype=dt) + torch.rand(r, m, generator=generator, device=dev, dtype=dt)
-    cand = cfg.near + (far - cfg.near)[:, None] * u / m  # (R, M)
+    cand = near + (far - near)[:, None] * u / m  # (R, M)
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * cand[..., None]
     _, vox = PriorLookup(voxels)(pts.reshape(-1, 3).detach().cpu().numpy())
     inside = torch.from_numpy(vox.reshape(r, m) >= 0).to(dev)
@@ -89,14 +88,15 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
 
 
 def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
-               cfg: TrainConfig, generator: torch.Generator | None = None,
+               cfg: TrainConfig, near: float, generator: torch.Generator | None = None,
                prior_opt: PriorAdam | None = None) -> dict[str, float]:
     """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
-    lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows."""
+    lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows. Free-space
+    samples start at ``near`` (m)."""
     tr = voxels.cfg.truncation
-    t, b0 = sample_depths(rays.depth, cfg, tr, generator)
+    t, b0 = sample_depths(rays.depth, cfg, tr, near, generator)
     if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
-        t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, generator), t[:, b0:]], 1)
+        t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, near, generator), t[:, b0:]], 1)
     r, s = t.shape
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
     flat = pts.reshape(-1, 3)
@@ -105,11 +105,11 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
     band_pts = pts[:, b0:].reshape(-1, 3)
     band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
-    need = color_samples(sdf[:, b0:], cfg.beta, inside[:, b0:], cfg.color_weight_floor)
+    need = color_samples(sdf[:, b0:], neural_field.cfg.beta, inside[:, b0:], cfg.color_weight_floor)
     band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
     col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
         0, band_in, neural_field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
-    out = composite(sdf[:, b0:], t[:, b0:], col, cfg.beta, inside[:, b0:], color_mask=need)
+    out = composite(sdf[:, b0:], t[:, b0:], col, neural_field.cfg.beta, inside[:, b0:], color_mask=need)
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
     order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
     fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth, inside.gather(1, order),

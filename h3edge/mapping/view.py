@@ -40,10 +40,10 @@ def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
 
 
 class MapView:
-    def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, beta: float, render_cfg: RenderConfig,
+    def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, render_cfg: RenderConfig,
                  mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0):
         self.field, self.voxels = field, voxels
-        self.voxel_size, self.beta, self.render_cfg = voxel_size, beta, render_cfg
+        self.voxel_size, self.render_cfg = voxel_size, render_cfg
         self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
 
@@ -54,8 +54,8 @@ class MapView:
         if decoders is not None:
             field.sdf_mlp = decoders.mlp(field.sdf_mlp)
             field.color_mlp = decoders.mlp(field.color_mlp)
-        return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.beta,
-                       self.render_cfg, self.mesh_resolution, self.frames_mapped, self.mesh_min_support)
+        return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.render_cfg, self.mesh_resolution,
+                       self.frames_mapped, self.mesh_min_support)
 
     @property
     def device(self) -> torch.device:
@@ -73,7 +73,7 @@ class MapView:
         return self.field.color(p, torch.from_numpy(vox).to(self.device)).cpu().numpy()
 
     def renderer(self) -> MapRenderer:
-        return MapRenderer(self.field, self.voxels, self.beta, self.render_cfg)
+        return MapRenderer(self.field, self.voxels, self.render_cfg)
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit)."""

@@ -31,11 +31,11 @@ import torch
 
 from h3edge.geometry.camera import Intrinsics, backproject, project
 from h3edge.mapping.sparse_adam import lazy_adam_rows
+from h3edge.mapping.trilinear import CORNERS, corner_weights
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
-CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
 
 
 def pack(ijk: np.ndarray) -> np.ndarray:
@@ -337,8 +337,7 @@ class VoxelMap:
             return torch.zeros(len(points), dtype=self.priors.dtype, device=points.device), inside
         f = torch.from_numpy(frac.astype(np.float32)).to(points.device)
         vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
-        corners = torch.from_numpy(CORNERS).to(points.device).bool()
-        w = torch.where(corners[None], f[:, None, :], 1 - f[:, None, :]).prod(-1)  # (N, 8)
+        w = corner_weights(f)  # (N, 8)
         return (self.priors[vid] * w).sum(1) * inside, inside
 
     def table(self) -> VoxelTable:

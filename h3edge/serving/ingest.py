@@ -85,9 +85,22 @@ class Ingest:
             self._pose_drop("future_pose", f"pose at {msg.timestamp_ns} ns is more than {self.max_future_s:g} s "
                                            "ahead of this host's clock")
             return
-        why = self.poses.add(msg.timestamp_ns, msg.pose)
+        self._buffer_pose(msg.timestamp_ns, msg.pose)
+
+    def add_pose(self, timestamp_ns: int, pose) -> None:
+        """Buffer a camera pose (optical -> world, 4x4) already decoded elsewhere (the ROS ingest);
+        the same checks and drop counts as :meth:`submit_pose`."""
+        self.counts["poses_received"] += 1
+        if self.from_future(timestamp_ns):
+            self._pose_drop("future_pose", f"pose at {timestamp_ns} ns is more than {self.max_future_s:g} s "
+                                           "ahead of this host's clock")
+            return
+        self._buffer_pose(timestamp_ns, pose)
+
+    def _buffer_pose(self, timestamp_ns: int, pose) -> None:
+        why = self.poses.add(timestamp_ns, pose)
         if why:
-            self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {msg.timestamp_ns} ns: {why}")
+            self._pose_drop(f"{why}_pose" if why != "bad_pose" else "bad_pose", f"pose at {timestamp_ns} ns: {why}")
 
     def _pose_drop(self, code: str, text: str) -> None:
         self.pose_drops[code] += 1

@@ -16,8 +16,9 @@ iteration for it, and mapping is held up only for the copy, tens of ms); a copy 
 ``snapshot_max_age_s`` is reused. Status reads counters the mapper thread publishes after each
 frame (no lock, no wait).
 
-Checkpoints: every ``checkpoint_interval_s``, on ``save`` and on stop. The mapper thread captures
-the state between frames; a writer thread writes it atomically (:mod:`h3edge.serving.checkpoint`).
+Checkpoints: every ``checkpoint_interval_s``, on ``save`` and on stop, through the
+:class:`~h3edge.serving.checkpointing.Checkpointer` (the mapper thread captures between frames; its
+writer thread writes atomically).
 
 Memory budget: ``memory_budget_mb`` is split up front (:mod:`h3edge.serving.memory_plan`): hash
 tables and their optimiser state, the voxel map at its cap, a reserve for query snapshots, the
@@ -52,23 +53,15 @@ from h3edge.io.protocol import (
 from h3edge.io.sequence import Frame
 from h3edge.mapping.mapper import Mapper, MapSettings
 from h3edge.mapping.mesh import working_bytes
-from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, export_decoders
-from h3edge.mapping.persistence import mapper_state, restore_mapper
+from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.view import MapView
 from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint import (
-    CHECKPOINT_NAME,
-    CheckpointError,
-    check_writable,
-    previous_path,
-    read_checkpoint,
-    remove_leftovers,
-    write_checkpoint,
-)
+from h3edge.serving.checkpointing import Checkpointer
 from h3edge.serving.ingest import Ingest, PendingFrame
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.queries import MeshRequest, RenderRequest
+from h3edge.serving.ros_ingest import RosConfig, RosIngest
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +84,6 @@ class ServiceConfig:
     # the decode and per-frame buffers of one frame this size
     max_frame_pixels: int = 1920 * 1080
     snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
-    max_render_pixels: int = 1280 * 960  # render requests above this are refused
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
     query_timeout_s: float = 60.0  # longest a query waits for the mapper thread's map copy
     # a heavy query (mesh, render, save) still queued after this long gets a deadline error reply
@@ -103,7 +95,9 @@ class ServiceConfig:
 # --------------------------------------------------------------------------------- service
 class MapService:
     def __init__(self, settings: MapSettings, cfg: ServiceConfig = ServiceConfig(), profile_name: str = "",
-                 resume: bool = False, inference: InferenceConfig = InferenceConfig()):
+                 resume: bool = False, inference: InferenceConfig = InferenceConfig(), ros: RosConfig | None = None):
+        """``ros``: also take ROS 2 topics (:class:`~h3edge.serving.ros_ingest.RosIngest`); ValueError
+        when its configuration is incomplete (no extrinsic)."""
         self.settings, self.cfg, self.profile_name = settings, cfg, profile_name
         self.inference = inference
         self.plan = memory_plan(settings, cfg.memory_budget_mb, keyframe_bytes(settings, cfg.max_frame_pixels),
@@ -115,21 +109,23 @@ class MapService:
         self.settings = dataclasses.replace(settings, keyframes=kf)
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
-        self.checkpoint_path = self.state_dir / cfg.map_id / CHECKPOINT_NAME
-        check_writable(self.checkpoint_path.parent)
-        for f in remove_leftovers(self.checkpoint_path.parent):
-            log.warning("removed %s, left by a checkpoint write that did not finish", f)
+        self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
+        self.mapper = Mapper(self.settings)
+        self.checkpoints = Checkpointer(self.run_dir, cfg.map_id, profile_name, self.settings, self.mapper.timings,
+                                        self._error, after_write=self._write_profile)
         # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
-        self.decoders = (DecoderRuntime(inference, cache_dir=self.state_dir / cfg.map_id / "trt_cache")
+        self.decoders = (DecoderRuntime(inference, cache_dir=self.run_dir / "trt_cache")
                          if inference.decoders == "onnx" else None)
         self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s, cfg.pose_max_speed)
-        self.mapper = Mapper(self.settings)
         self.resumed_from: dict | None = None
         if resume:
-            self._resume()
+            resumed, self.resumed_from = self.checkpoints.resume()
+            if resumed is not None:
+                self._adopt(resumed)
         self.mapper.step_hook = self._serve_requests
         self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
-        self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
+        self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error)
+                    if ros is not None else None)
         self.durations: DurationLog | None = None
         try:
             self.durations = DurationLog(self.run_dir / "timings.jsonl", cfg.timings_log_mb << 20)
@@ -138,7 +134,6 @@ class MapService:
             log.error("no timing log in %s: %s", self.run_dir, e)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._writer: threading.Thread | None = None
         self._view_requests: list[Future] = []
         self._save_requests: list[Future] = []
         self._req_lock = threading.Lock()
@@ -154,8 +149,6 @@ class MapService:
         if self.resumed_from and self.resumed_from["fallback"]:
             self._error("checkpoint_fallback", "resumed from the previous checkpoint: "
                         + "; ".join(self.resumed_from["skipped"]))
-        self.last_checkpoint: dict | None = None
-        self._last_ckpt_time = time.monotonic()
         self.heartbeat = time.monotonic()
         self.started = time.time()
         self._stats = self._collect_stats()
@@ -165,36 +158,12 @@ class MapService:
         self._dropped_at_start = dict(self.mapper.dropped)
 
     # ---------------------------------------------------------------- lifecycle
-    def _resume(self) -> None:
-        """Resume from the newest checkpoint; when it is missing or unreadable, from the previous one
-        (and say so); CheckpointError when neither can be read."""
-        newest, prev = self.checkpoint_path, previous_path(self.checkpoint_path)
-        if not newest.exists() and not prev.exists():
-            log.info("no checkpoint at %s: starting a new map", newest)
-            return
-        errors = []
-        for path in (newest, prev):
-            if not path.exists():
-                errors.append(f"{path}: missing")
-                continue
-            try:
-                header, arrays = read_checkpoint(path)
-                if header.get("map_id") != self.cfg.map_id:
-                    raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.cfg.map_id!r}")
-                self.mapper = restore_mapper(self.settings, header["state"], arrays)
-            except (CheckpointError, ValueError, KeyError) as e:
-                errors.append(f"{path}: {e}")
-                log.error("cannot resume from %s: %s", path, e)
-                continue
-            self.resumed_from = {"path": str(path), "frames_mapped": header["frames_mapped"],
-                                 "created_unix": header["created_unix"], "fallback": path == prev,
-                                 "skipped": errors}
-            if path == prev:
-                log.warning("resumed from the previous checkpoint %s: %s", path, "; ".join(errors))
-            log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.cfg.map_id, path,
-                     self.mapper.frames_mapped, len(self.mapper.voxels), len(self.mapper.keyframes.keyframes))
-            return
-        raise CheckpointError("cannot resume: " + "; ".join(errors))
+    def _adopt(self, mapper: Mapper) -> None:
+        """Map on with ``mapper`` (resumed or loaded): its timings keep this service's log."""
+        mapper.timings = self.mapper.timings
+        mapper.step_hook = self.mapper.step_hook
+        self.mapper = mapper
+        self.checkpoints.timings = mapper.timings
 
     def warm_up(self) -> float:
         """Run every kernel once (map two synthetic frames on a throwaway small map, render, mesh),
@@ -231,11 +200,10 @@ class MapService:
         self.ingest.wake()
         if self._thread is not None:
             self._thread.join(timeout)
-        if self._writer is not None:
-            self._writer.join(timeout)
+        self.checkpoints.join(timeout)
         ok = True
         if checkpoint and self.mapper.field is not None:
-            ok = self._write(*self._capture())
+            ok = self.checkpoints.write(self.checkpoints.capture(self.mapper))
         else:
             self._write_profile()
         if self.durations is not None:
@@ -295,10 +263,8 @@ class MapService:
         log.info("mapper thread stopped")
 
     def _maybe_checkpoint(self) -> None:
-        interval = self.cfg.checkpoint_interval_s
-        if interval > 0 and time.monotonic() - self._last_ckpt_time > interval and self.mapper.field is not None \
-                and self.mapper.frames_mapped > (self.last_checkpoint or {}).get("frames_mapped", 0):
-            self._checkpoint_async()
+        if self.checkpoints.due(self.mapper, self.cfg.checkpoint_interval_s):
+            self.checkpoints.write_async(self.checkpoints.capture(self.mapper))
 
     def _note_iterations(self) -> None:
         """Record (time, iterations so far) for the status's training rate."""
@@ -388,7 +354,7 @@ class MapService:
                 for f in saves:
                     f.set_exception(QueryError("nothing mapped yet"))
             else:
-                self._checkpoint_async(saves)
+                self.checkpoints.write_async(self.checkpoints.capture(self.mapper), saves)
 
     def _ask(self, requests: list[Future]) -> object:
         """Queue a request for the mapper thread and wait for its answer (served here when no
@@ -419,34 +385,6 @@ class MapService:
             self._last_save_request = now
         return self._ask(self._save_requests)
 
-    def _capture(self) -> tuple[dict, dict]:
-        meta, arrays = mapper_state(self.mapper)
-        for name, model in export_decoders(self.mapper.field).items():  # versioned with the map
-            arrays[f"onnx/{name}"] = np.frombuffer(model, np.uint8)
-        header = {"map_id": self.cfg.map_id, "profile": self.profile_name, "frames_mapped": self.mapper.frames_mapped,
-                  "settings": dataclasses.asdict(self.settings), "state": meta}
-        return header, arrays
-
-    def _write(self, header: dict, arrays: dict, futures: list[Future] | None = None) -> bool:
-        t0 = time.perf_counter()
-        try:
-            size = write_checkpoint(self.checkpoint_path, json.loads(json.dumps(header, default=str)), arrays)
-            info = {"path": str(self.checkpoint_path), "frames_mapped": header["frames_mapped"], "bytes": size,
-                    "seconds": round(time.perf_counter() - t0, 3), "unix": time.time()}
-            self.last_checkpoint = info
-            self.mapper.timings.add("checkpoint", time.perf_counter() - t0)
-            self._write_profile()
-            log.info("checkpoint: %d frames, %.1f MB in %.2f s -> %s", info["frames_mapped"], size / 1e6,
-                     info["seconds"], self.checkpoint_path)
-            for f in futures or []:
-                f.set_result(info)
-            return True
-        except Exception as e:
-            self._error("checkpoint", f"{type(e).__name__}: {e}")
-            for f in futures or []:
-                f.set_exception(QueryError(f"checkpoint failed: {e}"))
-            return False
-
     def _write_profile(self) -> None:
         """``profile.json`` beside the checkpoint (``h3edge profile report <state_dir>/<map_id>``) and
         the timing log flushed: with every checkpoint and at stop. Failures are logged only."""
@@ -460,16 +398,6 @@ class MapService:
             log.error("cannot write %s: %s", self.run_dir / "profile.json", e)
         if self.durations is not None:
             self.durations.flush()
-
-    def _checkpoint_async(self, futures: list[Future] | None = None) -> None:
-        """Capture now (mapper thread), write on a writer thread (one at a time)."""
-        self._last_ckpt_time = time.monotonic()
-        if self._writer is not None and self._writer.is_alive():
-            self._writer.join()  # the previous write must land first: checkpoints stay ordered
-        header, arrays = self._capture()
-        self._writer = threading.Thread(target=self._write, args=(header, arrays, futures), name="h3edge-ckpt",
-                                        daemon=True)
-        self._writer.start()
 
     # ----------------------------------------------------------------- queries
     def _collect_stats(self) -> dict:
@@ -512,8 +440,9 @@ class MapService:
                 "memory": {"parts_bytes": s.get("memory_bytes", {}),
                            "total_bytes": int(sum(s.get("memory_bytes", {}).values())),
                            "budget_bytes": self.plan["budget"], "plan": self.plan},
-                "last_error": self.last_error, "last_checkpoint": self.last_checkpoint,
-                "resumed_from": self.resumed_from, "mapper_alive": self.alive}
+                "last_error": self.last_error, "last_checkpoint": self.checkpoints.last,
+                "resumed_from": self.resumed_from, "mapper_alive": self.alive,
+                **({"ros": self.ros.status()} if self.ros is not None else {})}
 
     def inference_info(self) -> dict:
         """What queries run on: the mapping device and the decoders' runtime and providers."""

@@ -94,6 +94,12 @@ class ZenohServer:
             sample.payload.to_bytes())))
         self._entities.append(self.session.declare_subscriber(k.pose, lambda sample: s.submit_pose(
             sample.payload.to_bytes())))
+        if s.ros is not None:  # ROS 2 topics, as zenoh-bridge-ros2dds or rmw_zenoh put them on zenoh
+            for role, key in s.ros.cfg.keys().items():
+                handle = s.ros.handler(role)
+                self._entities.append(self.session.declare_subscriber(
+                    key, lambda sample, handle=handle: handle(sample.payload.to_bytes())))
+                log.info("ROS %s from %s", role, key)
         handlers = {"status": (self._fast, self._status), "profile": (self._fast, self._profile),
                     "mesh": (self._heavy, self._mesh), "render": (self._heavy, self._render),
                     "save": (self._heavy, self._save)}
@@ -167,7 +173,7 @@ class ZenohServer:
         return svc.mesh(req), zenoh.Encoding("model/" + MESH_FORMATS[req.format])
 
     def _render(self, query):
-        req = RenderRequest.parse(self._request(query), self.service.cfg.max_render_pixels)
+        req = RenderRequest.parse(self._request(query), self.service.settings.render.max_pixels)
         return self.service.render(req), zenoh.Encoding.APPLICATION_OCTET_STREAM
 
     def _save(self, query):

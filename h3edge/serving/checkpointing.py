@@ -1,0 +1,169 @@
+"""Checkpoints of one running map: where they live, resuming from them, capturing the mapper's
+state and writing it on a writer thread, and saving to / loading from other files under the
+state directory.
+
+The mapper thread captures (:meth:`Checkpointer.capture`, between frames: the mapper's
+``state_dict`` plus its decoders as ONNX, versioned with the map); a writer thread writes it
+atomically (:func:`h3edge.serving.checkpoint.write_checkpoint`), one write at a time so
+checkpoints land in order. ``<run_dir>/map.h3ckpt`` is the one ``--resume`` reads, with the
+previous one kept beside it as the fallback; ``save_path`` / ``load_path`` name other checkpoint
+files, confined to ``<run_dir>/maps/`` (a query can never write or read outside it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import re
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from pathlib import Path
+
+import numpy as np
+
+from h3edge.errors import QueryError
+from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.onnx_decoders import export_decoders
+from h3edge.profiling.timing import Timings
+from h3edge.serving.checkpoint_file import (
+    CHECKPOINT_NAME,
+    CheckpointError,
+    check_writable,
+    previous_path,
+    read_checkpoint,
+    remove_leftovers,
+    write_checkpoint,
+)
+
+log = logging.getLogger(__name__)
+SAVED_MAPS_DIR = "maps"  # under the run directory: where named saves go and loads come from
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+class Checkpointer:
+    """Checkpoints of map ``map_id`` in ``run_dir``.
+
+    Usage::
+
+        ckpt = Checkpointer(run_dir, "kitchen", "x86-cpu", settings, timings, on_error)
+        mapper, resumed = ckpt.resume()          # (None, None) when there is no checkpoint
+        ckpt.write_async(ckpt.capture(mapper))   # on the mapper thread; the write runs beside it
+        ckpt.join()
+    """
+
+    def __init__(self, run_dir: Path, map_id: str, profile_name: str, settings: MapSettings, timings: Timings,
+                 on_error: Callable[[str, str], None], after_write: Callable[[], None] = lambda: None):
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / CHECKPOINT_NAME
+        self.map_id, self.profile_name, self.settings = map_id, profile_name, settings
+        self.timings, self.on_error, self.after_write = timings, on_error, after_write
+        check_writable(self.run_dir)
+        for f in remove_leftovers(self.run_dir):
+            log.warning("removed %s, left by a checkpoint write that did not finish", f)
+        self.last: dict | None = None  # the newest write that landed
+        self.last_time = time.monotonic()
+        self._writer: threading.Thread | None = None
+
+    # ----------------------------------------------------------------- reading
+    def read_mapper(self, path: Path) -> tuple[Mapper, dict]:
+        """The mapper saved in ``path`` and the file's header; CheckpointError / ValueError / KeyError
+        when it cannot be used for this map."""
+        header, arrays = read_checkpoint(path)
+        if header.get("map_id") != self.map_id:
+            raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.map_id!r}")
+        return Mapper.from_state_dict(self.settings, header["state"], arrays), header
+
+    def resume(self) -> tuple[Mapper | None, dict | None]:
+        """(mapper, where it came from) from the newest checkpoint, or from the previous one when the
+        newest is missing or unreadable (``fallback`` says so); (None, None) when neither exists;
+        CheckpointError when neither can be read."""
+        newest, prev = self.path, previous_path(self.path)
+        if not newest.exists() and not prev.exists():
+            log.info("no checkpoint at %s: starting a new map", newest)
+            return None, None
+        errors = []
+        for path in (newest, prev):
+            if not path.exists():
+                errors.append(f"{path}: missing")
+                continue
+            try:
+                mapper, header = self.read_mapper(path)
+            except (CheckpointError, ValueError, KeyError) as e:
+                errors.append(f"{path}: {e}")
+                log.error("cannot resume from %s: %s", path, e)
+                continue
+            resumed = {"path": str(path), "frames_mapped": header["frames_mapped"],
+                       "created_unix": header["created_unix"], "fallback": path == prev, "skipped": errors}
+            if path == prev:
+                log.warning("resumed from the previous checkpoint %s: %s", path, "; ".join(errors))
+            log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.map_id, path,
+                     mapper.frames_mapped, len(mapper.voxels), len(mapper.keyframes.keyframes))
+            return mapper, resumed
+        raise CheckpointError("cannot resume: " + "; ".join(errors))
+
+    # ----------------------------------------------------------------- writing
+    def capture(self, mapper: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
+        """(header, arrays) of the mapper now (call between frames, on the mapper's thread)."""
+        meta, arrays = mapper.state_dict()
+        for name, model in export_decoders(mapper.field).items():  # versioned with the map
+            arrays[f"onnx/{name}"] = np.frombuffer(model, np.uint8)
+        header = {"map_id": self.map_id, "profile": self.profile_name, "frames_mapped": mapper.frames_mapped,
+                  "settings": dataclasses.asdict(self.settings), "state": meta}
+        return header, arrays
+
+    def write(self, captured: tuple[dict, dict], futures: list[Future] | None = None,
+              path: Path | None = None) -> bool:
+        """Write a capture to ``path`` (the resume checkpoint by default); resolve ``futures`` with
+        the write's info or a QueryError. False when it failed (reported through ``on_error``)."""
+        header, arrays = captured
+        path = self.path if path is None else Path(path)
+        t0 = time.perf_counter()
+        try:
+            size = write_checkpoint(path, json.loads(json.dumps(header, default=str)), arrays)
+            info = {"path": str(path), "frames_mapped": header["frames_mapped"], "bytes": size,
+                    "seconds": round(time.perf_counter() - t0, 3), "unix": time.time()}
+            if path == self.path:
+                self.last = info
+            self.timings.add("checkpoint", time.perf_counter() - t0)
+            self.after_write()
+            log.info("checkpoint: %d frames, %.1f MB in %.2f s -> %s", info["frames_mapped"], size / 1e6,
+                     info["seconds"], path)
+            for f in futures or []:
+                f.set_result(info)
+            return True
+        except Exception as e:
+            self.on_error("checkpoint", f"{type(e).__name__}: {e}")
+            for f in futures or []:
+                f.set_exception(QueryError(f"checkpoint failed: {e}"))
+            return False
+
+    def write_async(self, captured: tuple[dict, dict], futures: list[Future] | None = None,
+                    path: Path | None = None) -> None:
+        """Write on the writer thread, after the previous write has landed (checkpoints stay ordered)."""
+        self.last_time = time.monotonic()
+        self.join()
+        self._writer = threading.Thread(target=self.write, args=(captured, futures, path), name="h3edge-ckpt",
+                                        daemon=True)
+        self._writer.start()
+
+    def due(self, mapper: Mapper, interval_s: float) -> bool:
+        """True when a periodic checkpoint is due: ``interval_s`` passed and the map has new frames."""
+        return (interval_s > 0 and time.monotonic() - self.last_time > interval_s and mapper.field is not None
+                and mapper.frames_mapped > (self.last or {}).get("frames_mapped", 0))
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._writer is not None and self._writer.is_alive():
+            self._writer.join(timeout)
+
+    # ------------------------------------------------------- named saves / loads
+    def named_path(self, name: str) -> Path:
+        """``<run_dir>/maps/<name>.h3ckpt`` for a plain file name (letters, digits, ``_ . -``, at most
+        64, no path separators); QueryError for anything else."""
+        if not isinstance(name, str) or not _NAME.fullmatch(name) or ".." in name:
+            raise QueryError(f"map name {name!r}: use 1-64 letters, digits, '_', '.' or '-' (a file name under "
+                             f"{self.run_dir / SAVED_MAPS_DIR}, no path)")
+        stem = name[: -len(".h3ckpt")] if name.endswith(".h3ckpt") else name
+        return self.run_dir / SAVED_MAPS_DIR / f"{stem}.h3ckpt"

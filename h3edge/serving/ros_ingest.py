@@ -1,0 +1,223 @@
+"""ROS 2 topics in: colour, depth and camera-info images paired into frames, robot poses turned
+into camera poses, both handed to the service's :class:`~h3edge.serving.ingest.Ingest`.
+
+- Colour and depth are paired by header stamp: each new image looks for the other kind within
+  ``pair_tolerance_s`` among the last ``pair_buffer`` of it; paired images become one raw frame
+  message (no re-encoding) stamped with the colour image's stamp, carrying the latest camera info
+  of that size. Unpaired images age out of the buffer (counted ``unpaired``).
+- Poses (``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` or ``tf2_msgs/TFMessage``) place the
+  robot's ``base_frame``; the camera pose is ``T_world_base @ T_base_optical`` with the configured
+  extrinsic ``base_to_camera``. There is no default extrinsic: without one (or ``identity``, said
+  explicitly) the ROS ingest does not start. A TF message's transforms other than
+  ``world_frame -> base_frame`` are ignored (not drops).
+- Frame ids are checked: images must be in ``camera_frame`` (when set), poses must place
+  ``base_frame`` in ``world_frame`` (when set); a mismatch is a counted drop with the reason, as is
+  every message that cannot be decoded or used.
+
+Runs on the transport's callback threads; never raises into them and never blocks.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from h3edge.errors import InputError
+from h3edge.geometry.camera import Intrinsics, rigid_error
+from h3edge.geometry.poses import pose_from_tq
+from h3edge.io import ros
+from h3edge.io.protocol import FrameMessage, encode_frame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RosConfig:
+    """ROS 2 input (profile table ``[ros]``; ``h3edge serve --ros`` turns it on)."""
+
+    key_style: str = "bridge"  # bridge (zenoh-bridge-ros2dds) | rmw_zenoh
+    key_prefix: str = ""  # bridge: the bridge's namespace prefix on the zenoh side, if any
+    domain: int = 0  # rmw_zenoh: ROS_DOMAIN_ID
+    color_topic: str = "/camera/color/image_raw"
+    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"  # depth registered to the colour camera
+    camera_info_topic: str = "/camera/color/camera_info"
+    pose_topic: str = "/odom"
+    pose_type: str = "odometry"  # odometry | pose (PoseStamped) | tf (TFMessage)
+    world_frame: str = ""  # poses must be expressed in this frame ("": any)
+    base_frame: str = "base_link"  # the frame the poses place (Odometry child frame; TF child)
+    camera_frame: str = ""  # images must carry this frame id ("": any)
+    # base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
+    # static_transform_publisher), or "identity" when the poses already are the camera's
+    base_to_camera: str = ""
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre (mm)
+    pair_tolerance_s: float = 0.02  # colour and depth stamps closer than this are one frame
+    pair_buffer: int = 8  # images of each kind kept waiting for their pair
+
+    def __post_init__(self):
+        if self.key_style not in ros.KEY_STYLES:
+            raise ValueError(f"key_style {self.key_style!r} is not one of {ros.KEY_STYLES}")
+        if self.pose_type not in ros.POSE_TYPES:
+            raise ValueError(f"pose_type {self.pose_type!r} is not one of {sorted(ros.POSE_TYPES)}")
+        if self.base_to_camera:
+            extrinsic_matrix(self.base_to_camera)
+
+    def keys(self) -> dict[str, str]:
+        """Zenoh key expression of each input (role -> key)."""
+        topics = {"color": (self.color_topic, ros.IMAGE), "depth": (self.depth_topic, ros.IMAGE),
+                  "camera_info": (self.camera_info_topic, ros.CAMERA_INFO),
+                  "pose": (self.pose_topic, ros.POSE_TYPES[self.pose_type])}
+        return {role: ros.topic_key(t, mt, self.key_style, self.key_prefix, self.domain)
+                for role, (t, mt) in topics.items()}
+
+
+def extrinsic_matrix(spec: str) -> np.ndarray:
+    """4x4 base -> camera-optical transform from ``"x y z qx qy qz qw"`` or ``"identity"``."""
+    if spec.strip() == "identity":
+        return np.eye(4)
+    try:
+        v = [float(x) for x in spec.replace(",", " ").split()]
+    except ValueError:
+        v = []
+    if len(v) != 7 or not np.isfinite(v).all():
+        raise ValueError(f"base_to_camera {spec!r}: give 'x y z qx qy qz qw' (7 numbers) or 'identity'")
+    m = pose_from_tq(np.array(v[:3]), np.array(v[3:]))
+    err = rigid_error(m)
+    if err:
+        raise ValueError(f"base_to_camera: {err}")
+    return m
+
+
+@dataclass
+class _Image:
+    stamp: int
+    frame_id: str
+    array: np.ndarray
+
+
+class RosIngest:
+    """ROS 2 messages -> the service's frames and poses (module docstring).
+
+    ``submit_frame(bytes)``: a raw frame message for the queue; ``add_pose(stamp_ns, matrix)``: a
+    camera pose; ``on_error(code, text)``: every refused message."""
+
+    def __init__(self, cfg: RosConfig, submit_frame: Callable[[bytes], None],
+                 add_pose: Callable[[int, np.ndarray], None], on_error: Callable[[str, str], None]):
+        if not cfg.base_to_camera:
+            raise InputError("ROS input needs the base -> camera extrinsic: set [ros] base_to_camera "
+                             "('x y z qx qy qz qw', the camera optical frame in base_frame) or 'identity' when "
+                             "the poses are the camera's own")
+        self.cfg = cfg
+        self.extrinsic = extrinsic_matrix(cfg.base_to_camera)
+        self.submit_frame, self.add_pose, self.on_error = submit_frame, add_pose, on_error
+        self._lock = threading.Lock()
+        self._colors: collections.deque[_Image] = collections.deque()
+        self._depths: collections.deque[_Image] = collections.deque()
+        self._infos: dict[tuple[int, int], Intrinsics] = {}
+        self.received = collections.Counter()  # by role
+        self.drops = collections.Counter()  # by reason
+        self.frames = 0  # paired frames handed on
+        self._next_id = 0
+
+    def status(self) -> dict:
+        return {"keys": self.cfg.keys(), "received": dict(self.received), "frames": self.frames,
+                "dropped": dict(self.drops)}
+
+    def handler(self, role: str) -> Callable[[bytes], None]:
+        """The callback for input ``role`` (a key of :meth:`RosConfig.keys`); never raises."""
+        fn = {"color": self.on_color, "depth": self.on_depth, "camera_info": self.on_camera_info,
+              "pose": self.on_pose}[role]
+
+        def call(data: bytes) -> None:
+            self.received[role] += 1
+            try:
+                fn(data)
+            except ros.RosMessageError as e:
+                self._drop(f"ros_bad_{role}", str(e))
+            except Exception as e:  # noqa: BLE001 - a bug must not escape into the zenoh callback
+                log.exception("ROS %s message failed", role)
+                self._drop("ros_internal_error", f"{role}: {type(e).__name__}: {e}")
+
+        return call
+
+    def _drop(self, code: str, text: str) -> None:
+        self.drops[code] += 1
+        self.on_error(code, text)
+
+    # ------------------------------------------------------------------ images
+    def _image(self, data: bytes, depth: bool) -> _Image | None:
+        msg = ros.deserialize(data, ros.IMAGE)
+        if self.cfg.camera_frame and msg.header.frame_id != self.cfg.camera_frame:
+            self._drop("ros_frame_id", f"{'depth' if depth else 'colour'} image in frame {msg.header.frame_id!r}, "
+                                       f"not camera_frame {self.cfg.camera_frame!r}")
+            return None
+        arr = ros.image_depth(msg, self.cfg.depth_scale) if depth else ros.image_color(msg)
+        return _Image(ros.stamp_ns(msg.header), msg.header.frame_id, arr)
+
+    def on_color(self, data: bytes) -> None:
+        img = self._image(data, depth=False)
+        if img is not None:
+            self._pair(img, self._colors, self._depths, is_color=True)
+
+    def on_depth(self, data: bytes) -> None:
+        img = self._image(data, depth=True)
+        if img is not None:
+            self._pair(img, self._depths, self._colors, is_color=False)
+
+    def on_camera_info(self, data: bytes) -> None:
+        intr = ros.camera_intrinsics(ros.deserialize(data, ros.CAMERA_INFO))
+        with self._lock:
+            self._infos[(intr.width, intr.height)] = intr
+            while len(self._infos) > 4:
+                del self._infos[next(iter(self._infos))]
+
+    def _pair(self, img: _Image, mine: collections.deque, others: collections.deque, is_color: bool) -> None:
+        tol = int(self.cfg.pair_tolerance_s * 1e9)
+        with self._lock:
+            best = min(others, key=lambda o: abs(o.stamp - img.stamp), default=None)
+            if best is None or abs(best.stamp - img.stamp) > tol:
+                mine.append(img)
+                while len(mine) > self.cfg.pair_buffer:
+                    mine.popleft()
+                    self.drops["ros_unpaired"] += 1
+                return
+            others.remove(best)
+            color, depth = (img, best) if is_color else (best, img)
+            # images older than the pair will never be paired now
+            for q, t in ((self._colors, color.stamp), (self._depths, depth.stamp)):
+                while q and q[0].stamp < t:
+                    q.popleft()
+                    self.drops["ros_unpaired"] += 1
+            h, w = color.array.shape[:2]
+            intr = self._infos.get((w, h))
+        if depth.array.shape != (h, w):
+            self._drop("ros_size_mismatch", f"colour {w}x{h} and depth {depth.array.shape[1]}x{depth.array.shape[0]}"
+                                            " differ: publish depth registered to the colour camera")
+            return
+        if intr is None:
+            self._drop("ros_no_camera_info", f"no camera info for {w}x{h} images yet on {self.cfg.camera_info_topic}")
+            return
+        self._next_id += 1
+        msg = FrameMessage(color.stamp, self._next_id, color.array, depth.array, intr, None, color.frame_id)
+        self.frames += 1
+        self.submit_frame(encode_frame(msg, "raw_rgb8", "raw_f32"))
+
+    # ------------------------------------------------------------------- poses
+    def on_pose(self, data: bytes) -> None:
+        msgtype = ros.POSE_TYPES[self.cfg.pose_type]
+        poses = ros.poses_from_message(ros.deserialize(data, msgtype), msgtype)
+        cfg = self.cfg
+        for p in poses:
+            wrong_parent = cfg.world_frame and p.parent != cfg.world_frame
+            wrong_child = msgtype != ros.POSE_STAMPED and p.child != cfg.base_frame
+            if msgtype == ros.TF and (wrong_parent or wrong_child):
+                continue  # other transforms of the tree
+            if wrong_parent or wrong_child:
+                self._drop("ros_frame_id", f"pose of {p.child or '?'!r} in {p.parent!r}, expected {cfg.base_frame!r}"
+                                           f" in {cfg.world_frame or 'any frame'!r}")
+                continue
+            self.add_pose(p.stamp_ns, ros.camera_pose(p.matrix, self.extrinsic))
