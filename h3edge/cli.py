@@ -163,6 +163,23 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume, ros=args.ros)
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from h3edge.apps.viewer import run_viewer
+    from h3edge.serving.transport import open_session
+
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        raise ImportError("h3edge view needs rerun-sdk: pip install 'h3edge[view]'") from None
+    if not (args.save or args.rerun_url or args.spawn):
+        raise SystemExit("error: view needs --save FILE.rrd, --connect URL or --spawn")
+    with open_session(_zenoh_conf(args)) as session:
+        counts = run_viewer(session, args.map_id or "default", args.save, args.spawn, args.rerun_url,
+                            args.duration, args.render_every)
+    print(json.dumps(counts))
+    return 0
+
+
 def _cmd_sim_publish(args: argparse.Namespace) -> int:
     from h3edge.io import open_sequence
     from h3edge.serving.transport import Keys, open_session, publish_sequence
@@ -237,9 +254,24 @@ def _cmd_query(args: argparse.Namespace) -> int:
         else:
             raise SystemExit("error: render needs --pose or --look-at")
         payload = {"pose": pose, "width": args.width, "height": args.height, "fov_deg": args.fov}
+    elif args.what == "sdf":
+        if not args.points:
+            raise SystemExit("error: sdf needs --points FILE (.npy (N, 3) or text x y z per line)")
+        pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
+        payload = np.ascontiguousarray(pts, "<f4").reshape(-1, 3).tobytes()
+    elif args.what == "slice":
+        if args.z is None or not args.aabb:
+            raise SystemExit("error: slice needs --z and --aabb x0,y0,x1,y1")
+        box = _parse_floats(args.aabb, 4, "--aabb (x0,y0,x1,y1)")
+        payload = {"z": args.z, "aabb": [box[:2], box[2:]], "resolution": args.cell}
+    elif args.what in ("save", "load", "export"):
+        payload = {"name": args.name} if args.name else {}
+        if args.what == "export":
+            payload["format"] = args.format
     with open_session(_zenoh_conf(args)) as session:
         try:
-            data = query(session, getattr(keys, args.what), payload, timeout=args.timeout)
+            params = "gradient=true" if args.what == "sdf" and args.gradient else ""
+            data = query(session, getattr(keys, args.what), payload, params, timeout=args.timeout)
         except RemoteError as e:
             print(f"error from the service: {e}", file=sys.stderr)
             return 1
@@ -251,6 +283,18 @@ def _cmd_query(args: argparse.Namespace) -> int:
             raise SystemExit("error: render needs --out PREFIX")
         c, d = save_render_reply(data, Path(args.out))
         print(f"wrote {c} and {d}")
+    elif args.what in ("sdf", "slice"):
+        from h3edge.serving.transport import read_npz
+
+        arrays = read_npz(data)
+        if args.out:
+            Path(args.out).write_bytes(data)
+            print(f"wrote {args.out} (.npz: {', '.join(f'{k} {v.shape}' for k, v in arrays.items())})")
+        else:
+            print(json.dumps({k: v.tolist() if v.size <= 64 else f"{v.dtype} {v.shape}" for k, v in arrays.items()
+                              if k != "meta"}))
+            if "meta" in arrays:
+                print(arrays["meta"].tobytes().decode())
     elif args.out:
         Path(args.out).write_bytes(data)
         print(f"wrote {args.out} ({len(data)} bytes)")
@@ -382,6 +426,16 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--offline", action="store_true", help="map in-process without zenoh (the old demo)")
     demo.set_defaults(func=_cmd_demo)
 
+    vw = sub.add_parser("view", help="stream a running service's live map into Rerun (mesh, poses, frames, timings)")
+    vw.add_argument("--save", help="write the recording to this .rrd file (headless)")
+    vw.add_argument("--spawn", action="store_true", help="start a Rerun viewer on this machine")
+    vw.add_argument("--rerun-url", dest="rerun_url", help="a Rerun server, e.g. rerun+http://127.0.0.1:9876/proxy")
+    vw.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    vw.add_argument("--render-every", type=float, default=0.0,
+                    help="seconds between renders of the map from the latest pose (0: none)")
+    _add_zenoh_args(vw)
+    vw.set_defaults(func=_cmd_view)
+
     sv = sub.add_parser("serve", help="run the mapping service (zenoh ingest, queries, checkpoints)")
     sv.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
     sv.add_argument("--state-dir", help="checkpoint directory (default: the profile's; StateDirectory under systemd)")
@@ -413,16 +467,21 @@ def build_parser() -> argparse.ArgumentParser:
     pl.set_defaults(func=_cmd_deploy_plan)
 
     q = sub.add_parser("query", help="ask a running service for status, profile, mesh, render or a checkpoint")
-    q.add_argument("what", choices=["status", "profile", "mesh", "render", "save"])
+    q.add_argument("what", choices=["status", "profile", "mesh", "render", "sdf", "slice", "save", "load", "export"])
     q.add_argument("--out", help="write the reply here (mesh file; render: PREFIX_color.png + PREFIX_depth.png)")
     q.add_argument("--format", default="ply", choices=["ply", "glb", "obj"], help="mesh format")
     q.add_argument("--resolution", type=int, help="mesh: marching-cubes cells per voxel edge")
-    q.add_argument("--aabb", help="mesh: xmin,ymin,zmin,xmax,ymax,zmax")
+    q.add_argument("--aabb", help="mesh: xmin,ymin,zmin,xmax,ymax,zmax; slice: x0,y0,x1,y1")
     q.add_argument("--pose", help="render: tx,ty,tz,qx,qy,qz,qw (camera-to-world, OpenCV axes)")
     q.add_argument("--look-at", help="render: ex,ey,ez,tx,ty,tz (camera at e looking at t, z up)")
     q.add_argument("--width", type=int, default=320)
     q.add_argument("--height", type=int, default=240)
     q.add_argument("--fov", type=float, default=80.0, help="render: horizontal field of view [deg]")
+    q.add_argument("--points", help="sdf: points file (.npy (N, 3) float, or text with x y z per line)")
+    q.add_argument("--gradient", action="store_true", help="sdf: also the gradient")
+    q.add_argument("--z", type=float, help="slice: height [m]")
+    q.add_argument("--cell", type=float, default=0.05, help="slice: cell size [m]")
+    q.add_argument("--name", help="save / load / export: file name under the service's state directory")
     q.add_argument("--timeout", type=float, default=60.0)
     _add_zenoh_args(q)
     q.set_defaults(func=_cmd_query)

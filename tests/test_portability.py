@@ -39,7 +39,7 @@ def _pyproject() -> dict:
     return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 
 
-def jetson_requirements(project: dict, extras: tuple[str, ...] = ("eval", "oak")) -> list[str]:
+def jetson_requirements(project: dict, extras: tuple[str, ...] = ("eval", "oak", "view")) -> list[str]:
     """Runtime dependencies plus ``extras``, markers evaluated for the Jetson, torch left out."""
     from packaging.markers import default_environment
     from packaging.requirements import Requirement
@@ -107,7 +107,7 @@ def test_dependency_set_resolves_for_jetson_from_wheels(tmp_path):
         pytest.skip("package index unreachable")
     assert r.returncode == 0, f"not installable on linux-aarch64 / cp310 from wheels:\n{r.stderr[-3000:]}"
     names = {i["metadata"]["name"].lower() for i in json.loads((tmp_path / "report.json").read_text())["install"]}
-    assert {"numba", "onnxruntime", "eclipse-zenoh", "open3d", "depthai", "tomli"} <= names
+    assert {"numba", "onnxruntime", "eclipse-zenoh", "open3d", "depthai", "tomli", "rosbags", "rerun-sdk"} <= names
 
 
 def test_resolution_guard_refuses_an_x86_only_wheel(tmp_path):

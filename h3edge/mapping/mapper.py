@@ -32,6 +32,7 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
+from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
 from h3edge.mapping.gradient import color_gradient
 from h3edge.mapping.hashgrid import HashGrid
 from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, StoredFrame, gradient_scores
@@ -86,6 +87,7 @@ class MapSettings:
     keyframes: KeyframeConfig = dataclasses.field(default_factory=KeyframeConfig)
     texture: TextureConfig = dataclasses.field(default_factory=TextureConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
+    free_space: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
 
 
 @dataclass
@@ -140,6 +142,9 @@ class Mapper:
         self.voxels = VoxelMap(settings.voxels, self.device)
         self.keyframes = KeyframeSet(settings.keyframes)
         self.patterns = TexturePatterns(settings.texture)
+        self.free_space = FreeSpace(settings.free_space, settings.voxels.voxel_size, settings.voxels.truncation)
+        # keys of the voxels allocated or observed since the last take_changed_keys() (live mesh updates)
+        self._changed: list[np.ndarray] = []
         self.timings = Timings()
         self.bound = None if bound is None else np.asarray(bound, np.float64)
         self.field: Field | None = None
@@ -231,6 +236,8 @@ class Mapper:
             new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
         if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
             return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
+        with self.timings.time("free_space"):
+            self.free_space.mark(current.depth, frame.intrinsics, current.pose)
         if self.field is None:  # the first frame that maps places the grids' reference cube
             self._place_field(current.pose[:3, 3])
         grad = self._determine_texture(current, pts)
@@ -277,6 +284,9 @@ class Mapper:
         sub = current.pix[::stride]
         vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
         observed = np.unique(vox[vox >= 0])
+        self._changed.append(self.voxels.voxel_keys[observed])
+        if len(self._changed) > 256:  # nobody takes them: keep the union bounded
+            self._changed = [np.unique(np.concatenate(self._changed))]
         if not self.keyframes.should_insert(observed):
             return False
         scores = None
@@ -338,7 +348,13 @@ class Mapper:
             raise RuntimeError("nothing mapped yet")
         return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.settings.render,
                        self.cfg.mesh_resolution, self.frames_mapped,
-                       self.cfg.mesh_min_support)
+                       self.cfg.mesh_min_support, self.free_space)
+
+    def take_changed_keys(self) -> np.ndarray:
+        """Keys of the voxels allocated or observed by the frames mapped since the last call (the
+        regions whose mesh a live view should rebuild)."""
+        parts, self._changed = self._changed, []
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
     def renderer(self) -> MapRenderer:
         return self.view().renderer()
@@ -382,7 +398,7 @@ class Mapper:
                 arrays[f"opt/{i}/{k}"] = v.detach().cpu().numpy().copy() if torch.is_tensor(v) else np.asarray(v)
         arrays["torch_generator"] = self.generator.get_state().numpy().copy()
         for prefix, part in (("voxels", self.voxels), ("prior_opt", self.prior_opt), ("kf", self.keyframes),
-                             ("patterns", self.patterns)):
+                             ("patterns", self.patterns), ("free", self.free_space)):
             pmeta, parrays = part.state_dict()
             meta.update(_renamed_meta(prefix, pmeta))
             arrays.update(_prefixed(prefix, parrays))
@@ -423,6 +439,8 @@ class Mapper:
                                        self.device)
         self.keyframes.load_state_dict(meta, _unprefixed("kf", arrays))
         self.patterns.load_state_dict(_original_meta("patterns", meta), _unprefixed("patterns", arrays))
+        if "free/keys" in arrays:  # checkpoints from before the free-space record have none
+            self.free_space.load_state_dict(meta, _unprefixed("free", arrays))
         self.frames_mapped = int(meta["frames_mapped"])
         self.dropped = dict(meta["dropped"])
         self.last_timestamp = meta["last_timestamp"]
@@ -468,6 +486,7 @@ class Mapper:
                 "priors": len(self.voxels.vertex_keys) * 4 * 3,
                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                 "texture_patterns": self.patterns.nbytes,
+                "free_space": self.free_space.nbytes,
             },
         }
 

@@ -17,6 +17,7 @@ import trimesh
 
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.field import Field
+from h3edge.mapping.free_space import FreeSpace
 from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.onnx_decoders import DecoderRuntime
 from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig
@@ -41,8 +42,9 @@ def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
 
 class MapView:
     def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, render_cfg: RenderConfig,
-                 mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0):
-        self.field, self.voxels = field, voxels
+                 mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0,
+                 free_space: FreeSpace | None = None):
+        self.field, self.voxels, self.free_space = field, voxels, free_space
         self.voxel_size, self.render_cfg = voxel_size, render_cfg
         self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
@@ -55,7 +57,8 @@ class MapView:
             field.sdf_mlp = decoders.mlp(field.sdf_mlp)
             field.color_mlp = decoders.mlp(field.color_mlp)
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.render_cfg, self.mesh_resolution,
-                       self.frames_mapped, self.mesh_min_support)
+                       self.frames_mapped, self.mesh_min_support,
+                       copy.deepcopy(self.free_space) if self.free_space is not None else None)
 
     @property
     def device(self) -> torch.device:

@@ -40,6 +40,7 @@ from h3edge.serving.checkpoint_file import (
 
 log = logging.getLogger(__name__)
 SAVED_MAPS_DIR = "maps"  # under the run directory: where named saves go and loads come from
+EXPORTS_DIR = "exports"  # under the run directory: meshes exported by name
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
@@ -159,11 +160,11 @@ class Checkpointer:
             self._writer.join(timeout)
 
     # ------------------------------------------------------- named saves / loads
-    def named_path(self, name: str) -> Path:
-        """``<run_dir>/maps/<name>.h3ckpt`` for a plain file name (letters, digits, ``_ . -``, at most
-        64, no path separators); QueryError for anything else."""
+    def named_path(self, name: str, folder: str = SAVED_MAPS_DIR, suffix: str = ".h3ckpt") -> Path:
+        """``<run_dir>/<folder>/<name><suffix>`` for a plain file name (letters, digits, ``_ . -``, at
+        most 64, no path separators); QueryError for anything else."""
         if not isinstance(name, str) or not _NAME.fullmatch(name) or ".." in name:
-            raise QueryError(f"map name {name!r}: use 1-64 letters, digits, '_', '.' or '-' (a file name under "
-                             f"{self.run_dir / SAVED_MAPS_DIR}, no path)")
-        stem = name[: -len(".h3ckpt")] if name.endswith(".h3ckpt") else name
-        return self.run_dir / SAVED_MAPS_DIR / f"{stem}.h3ckpt"
+            raise QueryError(f"name {name!r}: use 1-64 letters, digits, '_', '.' or '-' (a file name under "
+                             f"{self.run_dir / folder}, no path)")
+        stem = name[: -len(suffix)] if name.endswith(suffix) else name
+        return self.run_dir / folder / f"{stem}{suffix}"

@@ -97,3 +97,96 @@ class RenderRequest:
         except (ProtocolError, KeyError, TypeError, ValueError) as e:
             raise QueryError(f"render request: {e}") from None
         return cls(intr, pose, bool(req.get("raw", False)))
+
+
+def _flag(value) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.lower() in ("1", "true", "yes", "0", "false", "no"):
+        return value.lower() in ("1", "true", "yes")
+    raise QueryError(f"expected true or false, got {value!r}")
+
+
+@dataclass(frozen=True)
+class SdfRequest:
+    points: np.ndarray  # float64 (N, 3) metres, finite
+    gradient: bool
+
+    @classmethod
+    def parse(cls, request: dict, raw_points: bytes | None, max_points: int) -> SdfRequest:
+        """From ``{"points": [[x, y, z], ...], "gradient"}`` or, for large batches, the points as raw
+        little-endian float32 x, y, z triples in the payload (``gradient`` then a selector
+        parameter); at most ``max_points``."""
+        req = _fields(request, {"points", "gradient"}, "sdf")
+        if raw_points is not None:
+            if len(raw_points) % 12:
+                raise QueryError(f"sdf payload of {len(raw_points)} bytes is not float32 x, y, z triples")
+            if len(raw_points) // 12 > max_points:
+                raise QueryError(f"{len(raw_points) // 12} points exceeds this service's cap of {max_points}")
+            pts = np.frombuffer(raw_points, "<f4").reshape(-1, 3).astype(np.float64)
+        else:
+            raw = req.get("points")
+            if not isinstance(raw, list) or len(raw) > max_points:
+                raise QueryError(f'sdf request needs "points": a list of at most {max_points} [x, y, z]')
+            try:
+                pts = np.asarray(raw, np.float64).reshape(-1, 3) if raw else np.zeros((0, 3))
+            except (ValueError, TypeError):
+                raise QueryError("sdf points must be [x, y, z] numbers") from None
+        if len(pts) == 0:
+            raise QueryError("sdf request has no points")
+        if not np.isfinite(pts).all() or np.abs(pts).max() > 1e6:
+            raise QueryError("sdf points must be finite coordinates within 1000 km")
+        return cls(pts, _flag(req.get("gradient", False)))
+
+
+@dataclass(frozen=True)
+class SliceRequest:
+    z: float  # m, the slice's height
+    lo: tuple[float, float]  # (x, y) m
+    hi: tuple[float, float]
+    resolution: float  # m per cell
+
+    @classmethod
+    def parse(cls, request: dict, max_cells: int) -> SliceRequest:
+        """From ``{"z", "aabb": "x0,y0,x1,y1" | [[x0, y0], [x1, y1]], "resolution"}`` (selector
+        parameters or JSON); at most ``max_cells`` cells."""
+        req = _fields(request, {"z", "aabb", "resolution"}, "slice")
+        try:
+            z = float(req["z"])
+            res = float(req.get("resolution", 0.05))
+            box = req["aabb"]
+            v = [float(x) for x in box.split(",")] if isinstance(box, str) else [float(x) for p in box for x in p]
+        except KeyError as e:
+            raise QueryError(f"slice request needs {e.args[0]!r}") from None
+        except (ValueError, TypeError):
+            raise QueryError('slice needs numbers: "z", "resolution" and "aabb" x0,y0,x1,y1') from None
+        if len(v) != 4 or not np.isfinite(v + [z, res]).all() or v[0] >= v[2] or v[1] >= v[3]:
+            raise QueryError("slice aabb must be x0,y0,x1,y1 with x0 < x1 and y0 < y1")
+        if not 0.005 <= res <= 10.0:
+            raise QueryError(f"slice resolution must be 0.005..10 m, got {res:g}")
+        cells = int(np.ceil((v[2] - v[0]) / res)) * int(np.ceil((v[3] - v[1]) / res))
+        if cells > max_cells:
+            raise QueryError(f"a slice of {cells} cells exceeds this service's cap of {max_cells}: a coarser "
+                             "resolution or a smaller aabb")
+        return cls(z, (v[0], v[1]), (v[2], v[3]), res)
+
+
+@dataclass(frozen=True)
+class NamedRequest:
+    """``save`` / ``load`` / ``export``: an optional file name under the state directory."""
+
+    name: str | None
+    format: str  # export only: ply | glb | obj
+
+    @classmethod
+    def parse(cls, request: dict, what: str) -> NamedRequest:
+        req = _fields(request, {"name", "format"} if what == "export" else {"name"}, what)
+        name = req.get("name")
+        if name is not None and not isinstance(name, str):
+            raise QueryError(f"{what}: name must be a string")
+        fmt = str(req.get("format", "ply"))
+        if fmt not in MESH_FORMATS:
+            raise QueryError(f"format must be ply, glb or obj, got {fmt!r}")
+        if what == "export" and not name:
+            raise QueryError("export needs a name")
+        return cls(name, fmt)

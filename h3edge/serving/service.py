@@ -51,16 +51,17 @@ from h3edge.io.protocol import (
     encode_frame,
 )
 from h3edge.io.sequence import Frame
+from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
 from h3edge.mapping.mapper import Mapper, MapSettings
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.view import MapView
 from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpointing import Checkpointer
+from h3edge.serving.checkpointing import EXPORTS_DIR, Checkpointer
 from h3edge.serving.ingest import Ingest, PendingFrame
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
-from h3edge.serving.queries import MeshRequest, RenderRequest
+from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
 from h3edge.serving.ros_ingest import RosConfig, RosIngest
 
 log = logging.getLogger(__name__)
@@ -85,10 +86,18 @@ class ServiceConfig:
     max_frame_pixels: int = 1920 * 1080
     snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
     max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
+    max_query_points: int = 1_000_000  # points in one signed-distance query
+    max_slice_cells: int = 4_000_000  # cells in one occupancy / distance slice (2000 x 2000)
     query_timeout_s: float = 60.0  # longest a query waits for the mapper thread's map copy
     # a heavy query (mesh, render, save) still queued after this long gets a deadline error reply
     query_deadline_s: float = 30.0
     save_min_interval_s: float = 10.0  # save requests closer together than this are refused
+    # live outputs for viewers (serving/live.py): status, new poses, the latest frame and the mesh of
+    # the blocks that changed, every live_interval_s (0: off)
+    live_interval_s: float = 1.0
+    live_block_voxels: int = 8  # leaf voxels per edge of a live mesh block
+    live_max_blocks: int = 64  # block meshes per update (the rest go in the next)
+    live_frame_width: int = 320  # the latest frame's thumbnail width
     timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
 
 
@@ -135,7 +144,8 @@ class MapService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._view_requests: list[Future] = []
-        self._save_requests: list[Future] = []
+        self._save_requests: list[tuple[Future, Path | None]] = []
+        self._load_requests: list[tuple[Future, Path]] = []
         self._req_lock = threading.Lock()
         self._last_save_request: float | None = None
         self._view: MapView | None = None
@@ -146,6 +156,9 @@ class MapService:
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
         self._iteration_log: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=2000)
         self.last_error: dict | None = None
+        self.latest_frame: FrameMessage | None = None  # the last mapped frame, with its pose (live view)
+        self._mapped_poses: collections.deque[tuple[int, np.ndarray]] = collections.deque(maxlen=10_000)
+        self._changed_keys: list[np.ndarray] = []  # voxel keys changed, collected with each map copy
         if self.resumed_from and self.resumed_from["fallback"]:
             self._error("checkpoint_fallback", "resumed from the previous checkpoint: "
                         + "; ".join(self.resumed_from["skipped"]))
@@ -208,7 +221,7 @@ class MapService:
             self._write_profile()
         if self.durations is not None:
             self.durations.close()
-        for fut in self._view_requests + self._save_requests:
+        for fut in self._view_requests + [f for f, _ in self._save_requests + self._load_requests]:
             if not fut.done():
                 fut.set_exception(QueryError("service stopping"))
         return ok
@@ -323,6 +336,9 @@ class MapService:
         frame = Frame(msg.frame_id, msg.timestamp, msg.color, msg.depth, pose, msg.intrinsics)
         result = self.mapper.process(frame, read_seconds=t_assoc - t0)  # decoding is the frame's reading
         if result.mapped:
+            with self._req_lock:
+                self._mapped_poses.append((msg.timestamp_ns, np.asarray(pose, np.float64)))
+            self.latest_frame = dataclasses.replace(msg, pose=np.asarray(pose, np.float64))
             now = time.monotonic()
             self._recent_mapped.append(now)
             self._delays.append(now - item.received)
@@ -335,15 +351,22 @@ class MapService:
         """On the mapper thread, between training steps: hand out map copies, capture saves."""
         self.heartbeat = time.monotonic()
         with self._req_lock:
-            views, saves = list(self._view_requests), list(self._save_requests)
+            views, saves, loads = list(self._view_requests), list(self._save_requests), list(self._load_requests)
             self._view_requests.clear()  # cleared in place: _ask holds these lists
             self._save_requests.clear()
+            self._load_requests.clear()
+        for fut, path in loads:  # first: a copy or save asked after a load sees the loaded map
+            self._load_now(fut, path)
         if views:
             try:
                 if self.mapper.field is None:
                     raise QueryError("nothing mapped yet")
                 view = self.mapper.view().frozen(self.decoders)
                 self._view, self._view_time = view, time.monotonic()
+                with self._req_lock:
+                    self._changed_keys.append(self.mapper.take_changed_keys())
+                    if len(self._changed_keys) > 64:
+                        self._changed_keys = [np.unique(np.concatenate(self._changed_keys))]
                 for f in views:
                     f.set_result(view)
             except Exception as e:
@@ -351,21 +374,58 @@ class MapService:
                     f.set_exception(e if isinstance(e, QueryError) else QueryError(f"snapshot failed: {e}"))
         if saves:
             if self.mapper.field is None:
-                for f in saves:
+                for f, _ in saves:
                     f.set_exception(QueryError("nothing mapped yet"))
             else:
-                self.checkpoints.write_async(self.checkpoints.capture(self.mapper), saves)
+                captured = self.checkpoints.capture(self.mapper)
+                for path in {p for _, p in saves}:
+                    self.checkpoints.write_async(captured, [f for f, p in saves if p == path], path)
 
-    def _ask(self, requests: list[Future]) -> object:
-        """Queue a request for the mapper thread and wait for its answer (served here when no
-        mapper thread runs)."""
+    def _load_now(self, fut: Future, path: Path) -> None:
+        """On the mapper thread: replace the map with the one saved in ``path``; the running map is
+        kept when that fails."""
+        try:
+            mapper, header = self.checkpoints.read_mapper(path)
+        except Exception as e:  # noqa: BLE001 - any unusable file is the requester's error, not the map's
+            fut.set_exception(QueryError(f"load {path.name}: {e}"))
+            return
+        old = self.mapper  # this process's counts go on across the swap
+        for k, v in old.dropped.items():
+            if v > self._dropped_at_start.get(k, 0):
+                self._drops[k] += v - self._dropped_at_start.get(k, 0)
+        self._mapped_at_start = mapper.frames_mapped - (old.frames_mapped - self._mapped_at_start)
+        self._dropped_at_start = dict(mapper.dropped)
+        self._adopt(mapper)
+        self._view, self._view_time = None, 0.0
+        self._stats = self._collect_stats()
+        log.info("loaded map from %s: %d frames, %d voxels", path, mapper.frames_mapped, len(mapper.voxels))
+        fut.set_result({"path": str(path), "frames_mapped": mapper.frames_mapped, "voxels": len(mapper.voxels),
+                        "created_unix": header.get("created_unix")})
+
+    def _ask(self, requests: list, arg: object = ...) -> object:
+        """Queue a request (with ``arg`` when given) for the mapper thread and wait for its answer
+        (served here when no mapper thread runs)."""
         fut: Future = Future()
         with self._req_lock:
-            requests.append(fut)
+            requests.append(fut if arg is ... else (fut, arg))
         self.ingest.wake()
         if not self.alive:
             self._serve_requests()
         return fut.result(self.cfg.query_timeout_s)
+
+    def take_mapped_poses(self) -> list[tuple[int, np.ndarray]]:
+        """(stamp ns, camera pose) of the frames mapped since the last call."""
+        with self._req_lock:
+            out = list(self._mapped_poses)
+            self._mapped_poses.clear()
+        return out
+
+    def take_changed_keys(self) -> np.ndarray:
+        """Keys of the voxels the mapped frames allocated or observed, up to the newest map copy,
+        since the last call."""
+        with self._req_lock:
+            parts, self._changed_keys = self._changed_keys, []
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
     def view(self) -> MapView:
         """A frozen copy of the map, at most ``snapshot_max_age_s`` old."""
@@ -373,8 +433,10 @@ class MapService:
             return self._view
         return self._ask(self._view_requests)
 
-    def save(self) -> dict:
-        """Checkpoint now (at most one per ``save_min_interval_s``; QueryError otherwise)."""
+    def save(self, request: NamedRequest = NamedRequest(None, "ply")) -> dict:
+        """Checkpoint now: the resume checkpoint, or ``<state>/<map>/maps/<name>.h3ckpt`` (which
+        ``load`` reads back). At most one save per ``save_min_interval_s`` (QueryError otherwise)."""
+        path = self.checkpoints.named_path(request.name) if request.name else None
         now = time.monotonic()
         with self._req_lock:
             last = self._last_save_request
@@ -383,7 +445,49 @@ class MapService:
                                  f"{self.cfg.save_min_interval_s:g} s (retry after "
                                  f"{self.cfg.save_min_interval_s - (now - last):.1f} s)")
             self._last_save_request = now
-        return self._ask(self._save_requests)
+        return self._ask(self._save_requests, path)
+
+    def load(self, request: NamedRequest) -> dict:
+        """Replace the running map with a saved one (``name``: ``maps/<name>.h3ckpt``; none: the
+        resume checkpoint), between two training steps; counted like a save against
+        ``save_min_interval_s``. The running map stays when the file cannot be used."""
+        path = self.checkpoints.named_path(request.name) if request.name else self.checkpoints.path
+        if not path.exists():
+            raise QueryError(f"load: no saved map {path.name} under {path.parent}")
+        now = time.monotonic()
+        with self._req_lock:
+            last = self._last_save_request
+            if last is not None and now - last < self.cfg.save_min_interval_s:
+                raise QueryError(f"load refused: the last save / load was {now - last:.1f} s ago; at most one per "
+                                 f"{self.cfg.save_min_interval_s:g} s")
+            self._last_save_request = now
+        return self._ask(self._load_requests, path)
+
+    def export_mesh(self, request: NamedRequest) -> dict:
+        """Write the whole map's mesh to ``<state>/<map>/exports/<name>.<format>``; its path and size."""
+        path = self.checkpoints.named_path(request.name, EXPORTS_DIR, "." + request.format)
+        data = self.mesh(MeshRequest(request.format, self.settings.mapper.mesh_resolution, None))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_bytes(data)
+        tmp.replace(path)
+        return {"path": str(path), "bytes": len(data)}
+
+    def signed_distance(self, request: SdfRequest) -> DistanceSample:
+        """Signed distance, state and gradient at the request's points (:mod:`h3edge.mapping.distance`)."""
+        view = self.view()
+        t0 = time.perf_counter()
+        out = signed_distance(view, request.points, request.gradient)
+        self.mapper.timings.add("sdf_query", time.perf_counter() - t0)
+        return out
+
+    def slice(self, request: SliceRequest) -> DistanceSlice:
+        """Occupancy and distance images at a height (:mod:`h3edge.mapping.distance`)."""
+        view = self.view()
+        t0 = time.perf_counter()
+        out = distance_slice(view, request.z, request.lo, request.hi, request.resolution)
+        self.mapper.timings.add("slice_query", time.perf_counter() - t0)
+        return out
 
     def _write_profile(self) -> None:
         """``profile.json`` beside the checkpoint (``h3edge profile report <state_dir>/<map_id>``) and

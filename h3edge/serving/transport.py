@@ -2,7 +2,8 @@
 query client and the publisher used by ``h3edge sim publish``.
 
 Keys (``<base>`` = ``h3edge/<map-id>``): ``<base>/frame`` and ``<base>/pose`` (put), queryables
-``<base>/status``, ``/profile``, ``/mesh``, ``/render``, ``/save`` (docs/protocol.md).
+``<base>/status``, ``/profile``, ``/mesh``, ``/render``, ``/sdf``, ``/slice`` and the operator's
+``/save``, ``/load``, ``/export`` (docs/protocol.md).
 
 Zenoh callbacks only hand bytes over (frames to the service's bounded queue, poses to its pose
 buffer) or queue the query object; worker threads answer queries (status and profile on one, the
@@ -26,7 +27,7 @@ import zenoh
 
 from h3edge.errors import QueryError
 from h3edge.io.protocol import check_map_id
-from h3edge.serving.queries import MESH_FORMATS, MeshRequest, RenderRequest
+from h3edge.serving.queries import MESH_FORMATS, MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,10 @@ class Keys:
     mesh = property(lambda self: f"{self.base}/mesh")
     render = property(lambda self: f"{self.base}/render")
     save = property(lambda self: f"{self.base}/save")
+    load = property(lambda self: f"{self.base}/load")
+    export = property(lambda self: f"{self.base}/export")
+    sdf = property(lambda self: f"{self.base}/sdf")
+    slice = property(lambda self: f"{self.base}/slice")
 
 
 def zenoh_config(path: str | None = None, mode: str | None = None, connect: list[str] | None = None,
@@ -87,6 +92,7 @@ class ZenohServer:
         self._entities: list = []
         self._workers: list[threading.Thread] = []
         self._closing = threading.Event()
+        self.live = None
 
     def start(self) -> None:
         s, k = self.service, self.keys
@@ -102,7 +108,9 @@ class ZenohServer:
                 log.info("ROS %s from %s", role, key)
         handlers = {"status": (self._fast, self._status), "profile": (self._fast, self._profile),
                     "mesh": (self._heavy, self._mesh), "render": (self._heavy, self._render),
-                    "save": (self._heavy, self._save)}
+                    "sdf": (self._heavy, self._sdf), "slice": (self._heavy, self._slice),
+                    "save": (self._heavy, self._save), "load": (self._heavy, self._load),
+                    "export": (self._heavy, self._export)}
         for name, (q, fn) in handlers.items():
             self._entities.append(self.session.declare_queryable(getattr(k, name), self._enqueue(q, fn),
                                                                  complete=True))
@@ -110,6 +118,13 @@ class ZenohServer:
             t = threading.Thread(target=self._work, args=(q,), name=f"h3edge-query-{name}", daemon=True)
             t.start()
             self._workers.append(t)
+        cfg = s.cfg
+        if cfg.live_interval_s > 0:
+            from h3edge.serving.live import LivePublisher
+
+            self.live = LivePublisher(s, self.session, k, cfg.live_interval_s, cfg.live_block_voxels,
+                                      cfg.live_max_blocks, cfg.live_frame_width)
+            self.live.start()
         log.info("serving map under %s/**", k.base)
 
     def _enqueue(self, q: queue.Queue, fn: Callable) -> Callable:
@@ -146,11 +161,13 @@ class ZenohServer:
                     query.reply_err(f"internal error: {type(e).__name__}: {e}")
 
     @staticmethod
-    def _request(query) -> dict:
+    def _request(query, binary: bool = False) -> dict:
+        """The query's JSON payload merged with its selector parameters; with ``binary``, a payload
+        that is not a JSON object is left for the caller (``query.payload``)."""
         out: dict = {}
         if query.payload is not None:
             raw = query.payload.to_bytes()
-            if raw:
+            if raw and not (binary and raw.lstrip()[:1] != b"{"):
                 try:
                     out = json.loads(raw)
                 except (ValueError, RecursionError) as e:  # bad UTF-8 or JSON, huge integers, deep nesting
@@ -176,13 +193,49 @@ class ZenohServer:
         req = RenderRequest.parse(self._request(query), self.service.settings.render.max_pixels)
         return self.service.render(req), zenoh.Encoding.APPLICATION_OCTET_STREAM
 
+    def _sdf(self, query):
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        binary = bool(raw) and raw.lstrip()[:1] != b"{"
+        req = SdfRequest.parse(self._request(query, binary=True), raw if binary else None,
+                               self.service.cfg.max_query_points)
+        out = self.service.signed_distance(req)
+        arrays = {"sdf": out.sdf, "state": out.state}
+        if out.gradient is not None:
+            arrays["gradient"] = out.gradient
+        return npz_bytes(arrays), zenoh.Encoding.APPLICATION_OCTET_STREAM
+
+    def _slice(self, query):
+        req = SliceRequest.parse(self._request(query), self.service.cfg.max_slice_cells)
+        out = self.service.slice(req)
+        meta = {"resolution": out.resolution, "origin": list(out.origin), "frame": "world", "rows": "y up from origin",
+                "occupancy": "-1 unknown, 0 free, 100 occupied", "distance": "metres to the nearest occupied cell"}
+        return npz_bytes({"occupancy": out.occupancy, "distance": out.distance,
+                          "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}), \
+            zenoh.Encoding.APPLICATION_OCTET_STREAM
+
+    def _exact(self, query, key: str, what: str) -> None:
+        if str(query.key_expr) != key:  # a wildcard query must not write or replace anything
+            raise QueryError(f"{what} needs the exact key {key}, not {query.key_expr}")
+
     def _save(self, query):
-        if str(query.key_expr) != self.keys.save:  # a wildcard query must not write a checkpoint
-            raise QueryError(f"save needs the exact key {self.keys.save}, not {query.key_expr}")
-        return json.dumps(self.service.save()).encode(), zenoh.Encoding.APPLICATION_JSON
+        self._exact(query, self.keys.save, "save")
+        req = NamedRequest.parse(self._request(query), "save")
+        return json.dumps(self.service.save(req)).encode(), zenoh.Encoding.APPLICATION_JSON
+
+    def _load(self, query):
+        self._exact(query, self.keys.load, "load")
+        req = NamedRequest.parse(self._request(query), "load")
+        return json.dumps(self.service.load(req)).encode(), zenoh.Encoding.APPLICATION_JSON
+
+    def _export(self, query):
+        self._exact(query, self.keys.export, "export")
+        req = NamedRequest.parse(self._request(query), "export")
+        return json.dumps(self.service.export_mesh(req)).encode(), zenoh.Encoding.APPLICATION_JSON
 
     def close(self) -> None:
         self._closing.set()
+        if self.live is not None:
+            self.live.close()
         for e in self._entities:
             try:
                 e.undeclare()
@@ -193,6 +246,22 @@ class ZenohServer:
 
 
 # ------------------------------------------------------------------------------------ client
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """Arrays as an uncompressed ``.npz`` (what sdf and slice replies carry; ``np.load`` reads it)."""
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def read_npz(data: bytes) -> dict[str, np.ndarray]:
+    import io
+
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
 def save_render_reply(data: bytes, out: Path) -> tuple[Path, Path]:
     """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
     from h3edge.io.protocol import decode_frame
@@ -212,11 +281,12 @@ class RemoteError(RuntimeError):
     """The service answered with an error reply (the message is the service's)."""
 
 
-def query(session: zenoh.Session, key: str, payload: dict | None = None, params: str = "",
+def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None, params: str = "",
           timeout: float = 60.0) -> bytes:
-    """One query; the reply's bytes, :class:`RemoteError` on an error reply, TimeoutError on none."""
+    """One query (``payload``: a JSON object, or raw bytes); the reply's bytes, :class:`RemoteError`
+    on an error reply, TimeoutError on none."""
     selector = f"{key}?{params}" if params else key
-    body = json.dumps(payload).encode() if payload is not None else None
+    body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
     for reply in session.get(selector, payload=body, timeout=timeout):
         if reply.ok is not None:
             return reply.ok.payload.to_bytes()

@@ -1,0 +1,116 @@
+"""Planner outputs from a map view: signed distance (and its gradient) at points, and an occupancy /
+distance slice at a height.
+
+What the map knows at a point, in this order:
+
+- inside an allocated voxel whose priors were observed (trilinear support at least the mesh's
+  ``mesh_min_support``): the field's SDF, ``sdf_m = field_sdf * truncation``. Within the band
+  (``|sdf_m| < truncation``) it is the distance to the surface (state ``NEAR``); beyond it only its
+  sign is trusted: ``FREE`` in front (distance at least ``truncation``), ``INSIDE`` behind;
+- else in a cell depth rays crossed (:mod:`h3edge.mapping.free_space`): ``FREE``, distance at least
+  ``truncation`` (reported as ``truncation``, a lower bound);
+- else ``UNKNOWN``: distance NaN. Never free.
+
+The gradient (metres per metre, pointing away from the surface) is the central difference of the
+field's SDF over ``GRADIENT_STEP`` voxels, where the field is known (NaN elsewhere); it runs on the
+view's decoders as they are (eager or ONNX), so it needs no autograd.
+
+The slice samples cell centres of a regular grid at height ``z``: occupancy as ``nav_msgs/
+OccupancyGrid`` values (-1 unknown, 0 free, 100 occupied: behind or within half a cell of a
+surface), and the distance (metres) from each known cell to the nearest occupied cell of the slice
+(a Euclidean distance transform within the plane; NaN for unknown cells). Row 0 is the lowest y.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from h3edge.mapping.raymarch import PriorLookup
+
+UNKNOWN, FREE, NEAR, INSIDE = 0, 1, 2, 3
+GRADIENT_STEP = 0.05  # voxel sizes, central differences
+
+
+@dataclass(frozen=True)
+class DistanceSample:
+    sdf: np.ndarray  # float32 (N,) metres; NaN unknown; +truncation is a lower bound for FREE
+    state: np.ndarray  # uint8 (N,): UNKNOWN, FREE, NEAR, INSIDE
+    gradient: np.ndarray | None  # float32 (N, 3) or None when not asked for
+
+
+@dataclass(frozen=True)
+class DistanceSlice:
+    occupancy: np.ndarray  # int8 (H, W): -1 unknown, 0 free, 100 occupied
+    distance: np.ndarray  # float32 (H, W) metres to the nearest occupied cell; NaN unknown
+    origin: tuple[float, float, float]  # world position of cell (0, 0)'s corner (x, y) and the height z
+    resolution: float  # metres per cell
+
+
+def _field_sdf(view, pts: np.ndarray, lookup: PriorLookup) -> tuple[np.ndarray, np.ndarray]:
+    """(SDF metres, supported-in-voxel mask) at points."""
+    tr = view.voxels.cfg.truncation
+    support = lookup.support(pts)
+    inside = support >= max(view.mesh_min_support, 1e-6)
+    sdf = np.full(len(pts), np.nan, np.float32)
+    if inside.any():
+        sdf[inside] = view.banded_sdf_np(pts[inside], np.inf, lookup) * tr
+    return sdf, inside
+
+
+def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int = 262_144) -> DistanceSample:
+    """Signed distance, state and (optionally) gradient at world points (N, 3) (module docstring)."""
+    pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    tr = view.voxels.cfg.truncation
+    lookup = PriorLookup(view.voxels)
+    sdf = np.full(len(pts), np.nan, np.float32)
+    state = np.zeros(len(pts), np.uint8)
+    grad = np.full((len(pts), 3), np.nan, np.float32) if gradient else None
+    for a in range(0, len(pts), chunk):
+        p = pts[a:a + chunk]
+        s, known = _field_sdf(view, p, lookup)
+        st = np.zeros(len(p), np.uint8)
+        st[known] = np.where(s[known] >= tr, FREE, np.where(s[known] <= -tr, INSIDE, NEAR))
+        if view.free_space is not None:
+            free = ~known & view.free_space.contains(p)
+            s[free], st[free] = tr, FREE
+        sdf[a:a + chunk], state[a:a + chunk] = s, st
+        if gradient and known.any():
+            h = GRADIENT_STEP * view.voxel_size
+            k = np.flatnonzero(known)
+            g = np.empty((len(k), 3), np.float32)
+            for axis in range(3):
+                off = np.zeros(3)
+                off[axis] = h
+                hi, _ = _field_sdf(view, p[k] + off, lookup)
+                lo, _ = _field_sdf(view, p[k] - off, lookup)
+                g[:, axis] = (hi - lo) / (2 * h)  # NaN where a side leaves the known field
+            grad[a + k] = g
+    return DistanceSample(sdf, state, grad)
+
+
+def distance_slice(view, z: float, lo: tuple[float, float], hi: tuple[float, float], resolution: float
+                   ) -> DistanceSlice:
+    """Occupancy and distance images of the rectangle ``lo``..``hi`` (x, y metres) at height ``z``."""
+    nx = max(1, int(np.ceil((hi[0] - lo[0]) / resolution)))
+    ny = max(1, int(np.ceil((hi[1] - lo[1]) / resolution)))
+    xs = lo[0] + (np.arange(nx) + 0.5) * resolution
+    ys = lo[1] + (np.arange(ny) + 0.5) * resolution
+    gx, gy = np.meshgrid(xs, ys)  # (ny, nx): row = y
+    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
+    sample = signed_distance(view, pts)
+    state = sample.state.reshape(ny, nx)
+    sdf = sample.sdf.reshape(ny, nx)
+    known = state != UNKNOWN
+    occupied = known & ((state == INSIDE) | ((state == NEAR) & (sdf <= 0.5 * resolution)))
+    occupancy = np.full((ny, nx), -1, np.int8)
+    occupancy[known] = 0
+    occupancy[occupied] = 100
+    if occupied.any():
+        dist = ndimage.distance_transform_edt(~occupied).astype(np.float32) * np.float32(resolution)
+    else:
+        dist = np.full((ny, nx), np.inf, np.float32)
+    dist[~known] = np.nan
+    return DistanceSlice(occupancy, dist, (float(lo[0]), float(lo[1]), float(z)), float(resolution))

@@ -1,0 +1,86 @@
+"""Observed free space: the leaf-voxel cells that depth rays have passed through.
+
+The H3 representation allocates voxels only around measured surfaces, so away from them it cannot
+tell free space from space never seen. A planner needs the difference: this record keeps, at the
+leaf voxel size, every cell a sampled depth ray crossed in front of its surface (from the camera
+to ``depth - truncation``), so queries can answer *free* there and *unknown* elsewhere. Rays with
+no valid depth mark nothing (a missing return is not evidence of free space).
+
+Per frame it samples the pixels on a ``stride`` grid at half a voxel along each ray; the cells are
+kept in a sorted key index (:class:`~h3edge.mapping.voxels.KeyIndex`), at most ``max_cells``
+(new cells past the cap are not recorded and counted in ``refused``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from h3edge.geometry.camera import Intrinsics, pixel_rays_camera
+from h3edge.mapping.voxels import KeyIndex, pack
+
+
+@dataclass(frozen=True)
+class FreeSpaceConfig:
+    enabled: bool = True
+    stride: int = 8  # pixel stride of the rays that mark free space
+    max_cells: int = 2_000_000  # cap (24 bytes a cell)
+
+
+class FreeSpace:
+    """Cells observed free; ``mark`` per frame, ``contains`` per query."""
+
+    def __init__(self, cfg: FreeSpaceConfig, voxel_size: float, truncation: float):
+        self.cfg, self.voxel_size, self.truncation = cfg, voxel_size, truncation
+        self.cells = KeyIndex()
+        self.refused = 0
+
+    def __len__(self) -> int:
+        return len(self.cells)
+
+    @property
+    def nbytes(self) -> int:
+        return 3 * 8 * len(self.cells)
+
+    def mark(self, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray) -> int:
+        """Record the cells the frame's sampled rays cross in front of their surface; returns how
+        many were new. ``depth``: cleaned z-depth (0 = invalid), ``pose``: camera-to-world."""
+        if not self.cfg.enabled:
+            return 0
+        s = self.cfg.stride
+        z = depth[s // 2::s, s // 2::s].reshape(-1)
+        rays = pixel_rays_camera(intr)[s // 2::s, s // 2::s].reshape(-1, 3)  # z = 1
+        ok = z > self.truncation
+        z, rays = z[ok], rays[ok]
+        if len(z) == 0:
+            return 0
+        step = 0.5 * self.voxel_size
+        reach = z - self.truncation  # z-depth up to which the ray is known free
+        n = int(np.ceil(reach.max() / step))
+        t = (np.arange(n, dtype=np.float32) + 0.5) * step  # (n,) z-depths
+        keep = t[None, :] < reach[:, None]  # (R, n)
+        r_idx, t_idx = np.nonzero(keep)
+        cam = rays[r_idx] * t[t_idx, None]
+        world = cam @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+        keys = np.unique(pack(np.floor(world / self.voxel_size).astype(np.int64)))
+        new = keys[self.cells.find(keys) < 0]
+        room = self.cfg.max_cells - len(self.cells)
+        if len(new) > room:
+            self.refused += len(new) - max(room, 0)
+            new = new[: max(room, 0)]
+        if len(new):
+            self.cells.add(new)
+        return len(new)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Bool (N,): the cell of each point (metres) was observed free."""
+        keys = pack(np.floor(np.asarray(points, np.float64) / self.voxel_size).astype(np.int64))
+        return self.cells.find(keys) >= 0
+
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        return {"free_refused": self.refused}, {"keys": self.cells.state_dict()}
+
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.cells.load_state_dict(np.asarray(arrays["keys"], np.int64))
+        self.refused = int(meta.get("free_refused", 0))
