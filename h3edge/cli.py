@@ -4,10 +4,14 @@
     h3edge sim sheet SEQUENCE OUT.png [--frames N]
     h3edge eval SEQUENCE [--mesh MESH.ply] [--reference tsdf|MESH.ply|none] [--json OUT.json]
     h3edge map SEQUENCE --out DIR [--profile P --frames N --stride S --device D --no-eval]
+        (SEQUENCE: Replica / own, TUM, ScanNet export, or a rosbag2 folder / .mcap / .db3 with the ROS flags)
     h3edge demo [--out DIR] [--preset default|tiny]   # the README's main job: the whole system on loopback
     h3edge serve --profile P [--zenoh-config F] [--map-id ID] [--state-dir DIR] [--resume]
+                 [--ros --base-to-camera "x y z qx qy qz qw" --ros-keys bridge|rmw_zenoh --color-topic T ...]
     h3edge sim publish SEQUENCE --rate HZ [--pose-rate HZ --jitter MS --frames N --embed-pose]
-    h3edge query status|profile|mesh|render|save [--out FILE] [...]
+    h3edge sim bag SEQUENCE OUT [--storage mcap|sqlite3 --base-to-camera ...]
+    h3edge view --save FILE.rrd | --spawn | --rerun-url URL [--duration S --render-every S]
+    h3edge query status|profile|mesh|render|sdf|slice|save|load|export [--out FILE] [...]
     h3edge profile report RUN_DIR|zenoh:[MAP-ID] [--vs OTHER] [--format table|markdown|json]
     h3edge deploy plan [--profile P]   # install-time: profile for this Jetson, unit memory limits
 Every zenoh-speaking command takes --zenoh-config FILE, --map-id ID and the endpoint overrides
@@ -103,7 +107,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
         profile = profile.with_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    seq = open_sequence(args.sequence)
+    seq = open_sequence(args.sequence, _ros_config(args, profile.ros))
     run = run_offline(seq, profile, Path(args.out), frames=args.frames, stride=args.stride,
                       evaluate_map=not args.no_eval, camera_hz=args.camera_hz, settle_s=args.settle_s)
     _print_run(run, Path(args.out))
@@ -145,16 +149,40 @@ def _profile_with_overrides(args: argparse.Namespace):
         profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, **svc))
     if getattr(args, "device", None):
         profile = profile.with_device(args.device)
-    ros = {k: v for k, v in (("base_to_camera", getattr(args, "base_to_camera", None)),
-                             ("key_style", getattr(args, "ros_keys", None))) if v}
-    if ros:
-        from h3edge.errors import InputError
+    return dataclasses.replace(profile, ros=_ros_config(args, profile.ros))
 
-        try:
-            profile = dataclasses.replace(profile, ros=dataclasses.replace(profile.ros, **ros))
-        except ValueError as e:
-            raise InputError(f"--base-to-camera / --ros-keys: {e}") from None
-    return profile
+
+_ROS_FLAGS = {"base_to_camera": "base_to_camera", "ros_keys": "key_style", "color_topic": "color_topic",
+              "depth_topic": "depth_topic", "camera_info_topic": "camera_info_topic", "pose_topic": "pose_topic",
+              "pose_type": "pose_type", "base_frame": "base_frame", "world_frame": "world_frame"}
+
+
+def _ros_config(args: argparse.Namespace, base=None):
+    """The profile's ``[ros]`` table (or the defaults) with the ROS command-line flags applied."""
+    from h3edge.errors import InputError
+    from h3edge.io.ros import RosConfig
+
+    over = {field: getattr(args, flag) for flag, field in _ROS_FLAGS.items() if getattr(args, flag, None)}
+    try:
+        return dataclasses.replace(base or RosConfig(), **over)
+    except ValueError as e:
+        raise InputError(f"ROS options: {e}") from None
+
+
+def _add_ros_args(p: argparse.ArgumentParser, keys: bool = False) -> None:
+    g = p.add_argument_group("ROS 2 topics (live input, rosbag2 recordings; defaults: the profile's [ros])")
+    g.add_argument("--base-to-camera", help="the camera optical frame in the robot's base frame, "
+                   "'x y z qx qy qz qw', or 'identity' when the poses already are the camera's")
+    if keys:
+        g.add_argument("--ros-keys", choices=["bridge", "rmw_zenoh"],
+                       help="how the topics appear on zenoh: zenoh-bridge-ros2dds (ns/topic) or rmw_zenoh")
+    g.add_argument("--color-topic")
+    g.add_argument("--depth-topic", help="depth registered to the colour camera (16UC1 mm or 32FC1 m)")
+    g.add_argument("--camera-info-topic")
+    g.add_argument("--pose-topic")
+    g.add_argument("--pose-type", choices=["odometry", "pose", "tf"])
+    g.add_argument("--base-frame", help="the frame the poses place (Odometry child frame, TF child)")
+    g.add_argument("--world-frame", help="the frame the poses are in ('' = any)")
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -180,11 +208,24 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim_bag(args: argparse.Namespace) -> int:
+    from h3edge.io import open_sequence
+    from h3edge.io.rosbag import write_rosbag
+
+    cfg = _ros_config(args)
+    if not cfg.base_to_camera:
+        cfg = dataclasses.replace(cfg, base_to_camera="identity")
+    out = write_rosbag(open_sequence(args.sequence), args.out, cfg, args.storage, args.rate, frames=args.frames)
+    print(f"wrote {out} ({args.storage}; topics {cfg.color_topic}, {cfg.depth_topic}, {cfg.camera_info_topic}, "
+          f"{cfg.pose_topic}; base_to_camera {cfg.base_to_camera})")
+    return 0
+
+
 def _cmd_sim_publish(args: argparse.Namespace) -> int:
     from h3edge.io import open_sequence
     from h3edge.serving.transport import Keys, open_session, publish_sequence
 
-    seq = open_sequence(args.sequence)
+    seq = open_sequence(args.sequence, _ros_config(args))
     with open_session(_zenoh_conf(args)) as session:
         sent = publish_sequence(session, seq, Keys.for_map(args.map_id or "default"), args.rate, args.pose_rate,
                                 args.jitter, args.frames, args.stride, args.embed_pose)
@@ -373,7 +414,16 @@ def build_parser() -> argparse.ArgumentParser:
     pb.add_argument("--frames", type=int, help="publish only the first N (strided) frames")
     pb.add_argument("--stride", type=int, default=1)
     pb.add_argument("--embed-pose", action="store_true", help="put the pose inside each frame message instead")
+    _add_ros_args(pb)
     _add_zenoh_args(pb)
+    bg = sim.add_parser("bag", help="record a sequence as a rosbag2 (colour, depth, camera info, odometry)")
+    bg.add_argument("sequence")
+    bg.add_argument("out")
+    bg.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    bg.add_argument("--rate", type=float, default=30.0, help="frames per second of the recording")
+    bg.add_argument("--frames", type=int, help="only the first N frames")
+    _add_ros_args(bg)
+    bg.set_defaults(func=_cmd_sim_bag)
     pb.set_defaults(func=_cmd_sim_publish)
 
     cam = sub.add_parser("camera", help="live camera sources").add_subparsers(dest="camera_command", required=True)
@@ -416,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "frames (default: every frame, fixed iterations)")
     mp.add_argument("--settle-s", type=float, default=0.0,
                     help="after the last frame, keep training on keyframes this many seconds")
+    _add_ros_args(mp)
     mp.set_defaults(func=_cmd_map)
 
     demo = sub.add_parser("demo", help="the whole system on loopback: service, publisher, queries, metrics")
@@ -443,10 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
     sv.add_argument("--ros", action="store_true",
                     help="also take ROS 2 topics: colour, depth, camera info, odometry / pose / TF ([ros])")
-    sv.add_argument("--ros-keys", choices=["bridge", "rmw_zenoh"],
-                    help="how the topics appear on zenoh: zenoh-bridge-ros2dds (ns/topic) or rmw_zenoh")
-    sv.add_argument("--base-to-camera", help="ROS: the camera optical frame in the robot's base frame, "
-                    "'x y z qx qy qz qw', or 'identity' when the poses already are the camera's")
+    _add_ros_args(sv, keys=True)
     _add_zenoh_args(sv)
     sv.set_defaults(func=_cmd_serve)
 

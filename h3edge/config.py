@@ -22,9 +22,9 @@ else:  # JetPack 6's Python 3.10
 
 from h3edge.errors import InputError
 from h3edge.eval.evaluate import EvalConfig
+from h3edge.io.ros import RosConfig
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.onnx_decoders import InferenceConfig
-from h3edge.serving.ros_ingest import RosConfig
 from h3edge.serving.service import ServiceConfig
 
 # Shipped inside the package (package data); the repository's top-level profiles/ links here.

@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation
 from h3edge.geometry.camera import Intrinsics, backproject, invert_pose
 from h3edge.geometry.poses import interpolate_pose
 from h3edge.io import ros
-from h3edge.serving.ros_ingest import RosConfig, RosIngest, extrinsic_matrix
+from h3edge.io.ros import RosConfig, extrinsic_matrix
+from h3edge.serving.ros_ingest import RosIngest
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
 # the camera optical frame in base_link: 10 cm forward, 20 cm up, looking along the base's x axis

@@ -7,17 +7,29 @@ from pathlib import Path
 from h3edge.io.sequence import DatasetError, Frame, Sequence
 
 
-def open_sequence(path: str | Path) -> Sequence:
-    """Open a dataset folder, detecting its layout: TUM (``rgb.txt``) or Replica / own (``traj.txt``)."""
+def open_sequence(path: str | Path, ros=None) -> Sequence:
+    """Open a dataset, detecting its layout: a rosbag2 recording (a folder with ``metadata.yaml``,
+    an ``.mcap`` or ``.db3`` file; read with the topic options ``ros``, a
+    :class:`~h3edge.io.ros.RosConfig`), a ScanNet export (``color/``, ``depth/``, ``pose/``,
+    ``intrinsic/``), TUM (``rgb.txt``) or Replica / own (``traj.txt``)."""
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.io.rosbag import RosbagSequence, is_rosbag
+    from h3edge.io.scannet import ScanNetSequence, is_scannet
     from h3edge.io.tum import TUMSequence
 
     p = Path(path)
+    if is_rosbag(p):
+        from h3edge.io.ros import RosConfig
+
+        return RosbagSequence(p, ros if ros is not None else RosConfig())
+    if is_scannet(p):
+        return ScanNetSequence(p)
     if (p / "rgb.txt").is_file():
         return TUMSequence(p)
     if (p / "traj.txt").is_file():
         return ReplicaSequence(p)
-    raise DatasetError(f"{p}: not a dataset (no rgb.txt for TUM, no traj.txt for Replica / h3edge format)")
+    raise DatasetError(f"{p}: not a dataset (a rosbag2 folder / .mcap / .db3, a ScanNet export, rgb.txt for TUM, "
+                       "traj.txt for Replica / h3edge format)")
 
 
 __all__ = ["DatasetError", "Frame", "Sequence", "open_sequence"]

@@ -1,4 +1,5 @@
-"""ROS 2 messages at the edge: CDR bytes <-> arrays, intrinsics and poses, through ``rosbags``'
+"""ROS 2 messages at the edge (topics live through :mod:`h3edge.serving.ros_ingest`, recordings
+through :mod:`h3edge.io.rosbag`): CDR bytes <-> arrays, intrinsics and poses, through ``rosbags``'
 pure-Python typestore (no ROS install needed).
 
 Conversions (each raises :class:`RosMessageError` naming what is wrong, never anything else):
@@ -243,9 +244,78 @@ def tf_message(transforms: list[tuple[np.ndarray, int, str, str]]):
     return t[TF](out)
 
 
+def pose_mismatch(pose: RosPose, msgtype: str, world_frame: str, base_frame: str) -> str | None:
+    """Why ``pose`` is not the robot's base pose in the world frame (None when it is); a TF message's
+    other transforms answer ``"other"`` (not an error: they are other links of the tree)."""
+    wrong_parent = bool(world_frame) and pose.parent != world_frame
+    wrong_child = msgtype != POSE_STAMPED and pose.child != base_frame
+    if not (wrong_parent or wrong_child):
+        return None
+    if msgtype == TF:
+        return "other"
+    where = world_frame or "any frame"
+    return f"pose of {pose.child or '?'!r} in {pose.parent!r}, expected {base_frame!r} in {where!r}"
+
+
 def camera_pose(base_pose: np.ndarray, base_to_camera: np.ndarray) -> np.ndarray:
     """``T_world_optical``: the base's pose composed with the base -> camera-optical extrinsic."""
     return np.asarray(base_pose, np.float64) @ np.asarray(base_to_camera, np.float64)
+
+
+@dataclass(frozen=True)
+class RosConfig:
+    """ROS 2 input (profile table ``[ros]``; ``h3edge serve --ros`` turns it on)."""
+
+    key_style: str = "bridge"  # bridge (zenoh-bridge-ros2dds) | rmw_zenoh
+    key_prefix: str = ""  # bridge: the bridge's namespace prefix on the zenoh side, if any
+    domain: int = 0  # rmw_zenoh: ROS_DOMAIN_ID
+    color_topic: str = "/camera/color/image_raw"
+    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"  # depth registered to the colour camera
+    camera_info_topic: str = "/camera/color/camera_info"
+    pose_topic: str = "/odom"
+    pose_type: str = "odometry"  # odometry | pose (PoseStamped) | tf (TFMessage)
+    world_frame: str = ""  # poses must be expressed in this frame ("": any)
+    base_frame: str = "base_link"  # the frame the poses place (Odometry child frame; TF child)
+    camera_frame: str = ""  # images must carry this frame id ("": any)
+    # base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
+    # static_transform_publisher), or "identity" when the poses already are the camera's
+    base_to_camera: str = ""
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre (mm)
+    pair_tolerance_s: float = 0.02  # colour and depth stamps closer than this are one frame
+    pair_buffer: int = 8  # images of each kind kept waiting for their pair
+
+    def __post_init__(self):
+        if self.key_style not in KEY_STYLES:
+            raise ValueError(f"key_style {self.key_style!r} is not one of {KEY_STYLES}")
+        if self.pose_type not in POSE_TYPES:
+            raise ValueError(f"pose_type {self.pose_type!r} is not one of {sorted(POSE_TYPES)}")
+        if self.base_to_camera:
+            extrinsic_matrix(self.base_to_camera)
+
+    def keys(self) -> dict[str, str]:
+        """Zenoh key expression of each input (role -> key)."""
+        topics = {"color": (self.color_topic, IMAGE), "depth": (self.depth_topic, IMAGE),
+                  "camera_info": (self.camera_info_topic, CAMERA_INFO),
+                  "pose": (self.pose_topic, POSE_TYPES[self.pose_type])}
+        return {role: topic_key(t, mt, self.key_style, self.key_prefix, self.domain)
+                for role, (t, mt) in topics.items()}
+
+
+def extrinsic_matrix(spec: str) -> np.ndarray:
+    """4x4 base -> camera-optical transform from ``"x y z qx qy qz qw"`` or ``"identity"``."""
+    if spec.strip() == "identity":
+        return np.eye(4)
+    try:
+        v = [float(x) for x in spec.replace(",", " ").split()]
+    except ValueError:
+        v = []
+    if len(v) != 7 or not np.isfinite(v).all():
+        raise ValueError(f"base_to_camera {spec!r}: give 'x y z qx qy qz qw' (7 numbers) or 'identity'")
+    m = pose_from_tq(np.array(v[:3]), np.array(v[3:]))
+    err = rigid_error(m)
+    if err:
+        raise ValueError(f"base_to_camera: {err}")
+    return m
 
 
 # ------------------------------------------------------------------ key expressions

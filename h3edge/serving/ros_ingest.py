@@ -28,68 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from h3edge.errors import InputError
-from h3edge.geometry.camera import Intrinsics, rigid_error
-from h3edge.geometry.poses import pose_from_tq
+from h3edge.geometry.camera import Intrinsics
 from h3edge.io import ros
 from h3edge.io.protocol import FrameMessage, encode_frame
+from h3edge.io.ros import RosConfig, extrinsic_matrix
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RosConfig:
-    """ROS 2 input (profile table ``[ros]``; ``h3edge serve --ros`` turns it on)."""
-
-    key_style: str = "bridge"  # bridge (zenoh-bridge-ros2dds) | rmw_zenoh
-    key_prefix: str = ""  # bridge: the bridge's namespace prefix on the zenoh side, if any
-    domain: int = 0  # rmw_zenoh: ROS_DOMAIN_ID
-    color_topic: str = "/camera/color/image_raw"
-    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"  # depth registered to the colour camera
-    camera_info_topic: str = "/camera/color/camera_info"
-    pose_topic: str = "/odom"
-    pose_type: str = "odometry"  # odometry | pose (PoseStamped) | tf (TFMessage)
-    world_frame: str = ""  # poses must be expressed in this frame ("": any)
-    base_frame: str = "base_link"  # the frame the poses place (Odometry child frame; TF child)
-    camera_frame: str = ""  # images must carry this frame id ("": any)
-    # base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
-    # static_transform_publisher), or "identity" when the poses already are the camera's
-    base_to_camera: str = ""
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre (mm)
-    pair_tolerance_s: float = 0.02  # colour and depth stamps closer than this are one frame
-    pair_buffer: int = 8  # images of each kind kept waiting for their pair
-
-    def __post_init__(self):
-        if self.key_style not in ros.KEY_STYLES:
-            raise ValueError(f"key_style {self.key_style!r} is not one of {ros.KEY_STYLES}")
-        if self.pose_type not in ros.POSE_TYPES:
-            raise ValueError(f"pose_type {self.pose_type!r} is not one of {sorted(ros.POSE_TYPES)}")
-        if self.base_to_camera:
-            extrinsic_matrix(self.base_to_camera)
-
-    def keys(self) -> dict[str, str]:
-        """Zenoh key expression of each input (role -> key)."""
-        topics = {"color": (self.color_topic, ros.IMAGE), "depth": (self.depth_topic, ros.IMAGE),
-                  "camera_info": (self.camera_info_topic, ros.CAMERA_INFO),
-                  "pose": (self.pose_topic, ros.POSE_TYPES[self.pose_type])}
-        return {role: ros.topic_key(t, mt, self.key_style, self.key_prefix, self.domain)
-                for role, (t, mt) in topics.items()}
-
-
-def extrinsic_matrix(spec: str) -> np.ndarray:
-    """4x4 base -> camera-optical transform from ``"x y z qx qy qz qw"`` or ``"identity"``."""
-    if spec.strip() == "identity":
-        return np.eye(4)
-    try:
-        v = [float(x) for x in spec.replace(",", " ").split()]
-    except ValueError:
-        v = []
-    if len(v) != 7 or not np.isfinite(v).all():
-        raise ValueError(f"base_to_camera {spec!r}: give 'x y z qx qy qz qw' (7 numbers) or 'identity'")
-    m = pose_from_tq(np.array(v[:3]), np.array(v[3:]))
-    err = rigid_error(m)
-    if err:
-        raise ValueError(f"base_to_camera: {err}")
-    return m
 
 
 @dataclass
@@ -212,12 +156,10 @@ class RosIngest:
         poses = ros.poses_from_message(ros.deserialize(data, msgtype), msgtype)
         cfg = self.cfg
         for p in poses:
-            wrong_parent = cfg.world_frame and p.parent != cfg.world_frame
-            wrong_child = msgtype != ros.POSE_STAMPED and p.child != cfg.base_frame
-            if msgtype == ros.TF and (wrong_parent or wrong_child):
+            why = ros.pose_mismatch(p, msgtype, cfg.world_frame, cfg.base_frame)
+            if why == "other":
                 continue  # other transforms of the tree
-            if wrong_parent or wrong_child:
-                self._drop("ros_frame_id", f"pose of {p.child or '?'!r} in {p.parent!r}, expected {cfg.base_frame!r}"
-                                           f" in {cfg.world_frame or 'any frame'!r}")
+            if why:
+                self._drop("ros_frame_id", why)
                 continue
             self.add_pose(p.stamp_ns, ros.camera_pose(p.matrix, self.extrinsic))

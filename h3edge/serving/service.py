@@ -50,6 +50,7 @@ from h3edge.io.protocol import (
     decode_frame,
     encode_frame,
 )
+from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import Frame
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
 from h3edge.mapping.mapper import Mapper, MapSettings
@@ -62,7 +63,7 @@ from h3edge.serving.checkpointing import EXPORTS_DIR, Checkpointer
 from h3edge.serving.ingest import Ingest, PendingFrame
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
-from h3edge.serving.ros_ingest import RosConfig, RosIngest
+from h3edge.serving.ros_ingest import RosIngest
 
 log = logging.getLogger(__name__)
 

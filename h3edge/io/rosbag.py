@@ -1,0 +1,200 @@
+"""rosbag2 recordings (sqlite3 ``.db3`` and MCAP) as a :class:`~h3edge.io.sequence.Sequence`, read
+with ``rosbags`` through the same topic options as live ROS input (:class:`~h3edge.io.ros.RosConfig`).
+
+Opening scans the bag once: the colour and depth images' header stamps (not their pixels), every
+camera info and every pose message. Colour and depth are paired by nearest stamp within
+``pair_tolerance_s``; each pair becomes a frame whose pose is the base pose interpolated at the
+colour stamp (SLERP, between poses at most ``MAX_POSE_GAP_S`` apart) composed with the extrinsic.
+Pairs without a pose or camera info are left out, counted in :attr:`RosbagSequence.skipped`.
+Reading a frame fetches its two messages by their bag time.
+
+:func:`write_rosbag` records a sequence as a robot would publish it (colour ``bgr8``, depth
+``16UC1`` mm, camera info, odometry of the base); the tests and ``h3edge sim bag`` use it.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from h3edge.geometry.camera import Intrinsics, invert_pose
+from h3edge.geometry.poses import interpolate_pose
+from h3edge.io import ros
+from h3edge.io.ros import RosConfig
+from h3edge.io.sequence import DatasetError, Frame, SequenceBase
+
+log = logging.getLogger(__name__)
+MAX_POSE_GAP_S = 0.2  # a frame is interpolated only between poses at most this far apart
+
+
+def is_rosbag(path: Path) -> bool:
+    p = Path(path)
+    return (p.is_dir() and (p / "metadata.yaml").is_file()) or p.suffix in (".mcap", ".db3")
+
+
+def _reader(path: Path):
+    from rosbags.highlevel import AnyReader
+
+    p = Path(path)
+    try:
+        reader = AnyReader([p], default_typestore=ros.typestore())
+        reader.open()
+    except Exception as e:  # noqa: BLE001 - rosbags raises its own error types per format
+        raise DatasetError(f"{p}: cannot open as a rosbag2 recording ({type(e).__name__}: {e})") from None
+    return reader
+
+
+class RosbagSequence(SequenceBase):
+    def __init__(self, root: str | Path, cfg: RosConfig = RosConfig()):
+        if not cfg.base_to_camera:
+            raise DatasetError("a rosbag needs the base -> camera extrinsic: [ros] base_to_camera or "
+                               "--base-to-camera ('x y z qx qy qz qw', or 'identity' when the poses are the camera's)")
+        self.root, self.cfg = Path(root), cfg
+        self.extrinsic = ros.extrinsic_matrix(cfg.base_to_camera)
+        self.skipped: dict[str, int] = {}
+        self._reader = _reader(self.root)
+        conns = {c.topic: c for c in self._reader.connections}
+        want = {"color": cfg.color_topic, "depth": cfg.depth_topic, "camera_info": cfg.camera_info_topic,
+                "pose": cfg.pose_topic}
+        missing = [t for t in want.values() if t not in conns]
+        if missing:
+            raise DatasetError(f"{self.root}: topics {missing} not in the bag (it has {sorted(conns)})")
+        self._conns = {role: conns[t] for role, t in want.items()}
+        self._scan()
+
+    def _skip(self, why: str) -> None:
+        self.skipped[why] = self.skipped.get(why, 0) + 1
+
+    def _scan(self) -> None:
+        cfg = self.cfg
+        stamps: dict[str, list[tuple[int, int]]] = {"color": [], "depth": []}  # (header stamp, bag time)
+        infos: dict[tuple[int, int], Intrinsics] = {}
+        poses: list[tuple[int, np.ndarray]] = []
+        pose_type = self._conns["pose"].msgtype
+        by_id = {c.id: role for role, c in self._conns.items()}
+        for conn, bag_t, raw in self._reader.messages(connections=list(self._conns.values())):
+            role = by_id[conn.id]
+            try:
+                msg = self._reader.deserialize(raw, conn.msgtype)
+                if role in stamps:
+                    if cfg.camera_frame and msg.header.frame_id != cfg.camera_frame:
+                        self._skip("frame_id")
+                        continue
+                    stamps[role].append((ros.stamp_ns(msg.header), bag_t))
+                elif role == "camera_info":
+                    intr = ros.camera_intrinsics(msg)
+                    infos[(intr.width, intr.height)] = intr
+                else:
+                    for p in ros.poses_from_message(msg, pose_type):
+                        if ros.pose_mismatch(p, pose_type, cfg.world_frame, cfg.base_frame) is None:
+                            poses.append((p.stamp_ns, p.matrix))
+            except ros.RosMessageError as e:
+                self._skip(f"bad_{role}")
+                log.warning("%s: %s", self.root, e)
+        poses.sort(key=lambda x: x[0])
+        self._pose_t = [t for t, _ in poses]
+        self._poses = [m for _, m in poses]
+        depth = sorted(stamps["depth"])
+        depth_t = [t for t, _ in depth]
+        tol = int(cfg.pair_tolerance_s * 1e9)
+        frames = []
+        for t, bag_t in sorted(stamps["color"]):
+            j = bisect.bisect_left(depth_t, t)
+            near = [k for k in (j - 1, j) if 0 <= k < len(depth)]
+            if not near:
+                self._skip("unpaired")
+                continue
+            k = min(near, key=lambda k: abs(depth_t[k] - t))
+            if abs(depth_t[k] - t) > tol:
+                self._skip("unpaired")
+                continue
+            pose = self._pose_at(t)
+            if pose is None:
+                self._skip("no_pose")
+                continue
+            frames.append((t, bag_t, depth[k][1], pose))
+        if not frames:
+            raise DatasetError(f"{self.root}: no colour + depth pair with a pose (skipped: {self.skipped})")
+        if not infos:
+            raise DatasetError(f"{self.root}: no camera info on {cfg.camera_info_topic}")
+        self._frames = frames
+        self._infos = infos
+        self.intrinsics = next(iter(infos.values()))
+        if self.skipped:
+            log.info("%s: %d frames; left out %s", self.root, len(frames), self.skipped)
+
+    def _pose_at(self, t: int) -> np.ndarray | None:
+        i = bisect.bisect_left(self._pose_t, t)
+        if i < len(self._pose_t) and self._pose_t[i] == t:
+            base = self._poses[i]
+        elif 0 < i < len(self._pose_t) and self._pose_t[i] - self._pose_t[i - 1] <= MAX_POSE_GAP_S * 1e9:
+            t0, t1 = self._pose_t[i - 1], self._pose_t[i]
+            base = interpolate_pose(self._poses[i - 1], self._poses[i], (t - t0) / (t1 - t0))
+        else:
+            return None
+        return ros.camera_pose(base, self.extrinsic)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return np.stack([f[3] for f in self._frames])
+
+    def _message(self, role: str, bag_t: int):
+        conn = self._conns[role]
+        for c, _, raw in self._reader.messages(connections=[conn], start=bag_t, stop=bag_t + 1):
+            return self._reader.deserialize(raw, c.msgtype)
+        raise DatasetError(f"{self.root}: {conn.topic} message at bag time {bag_t} disappeared")
+
+    def _load(self, i: int) -> Frame:
+        t, color_t, depth_t, pose = self._frames[i]
+        try:
+            color = ros.image_color(self._message("color", color_t))
+            depth = ros.image_depth(self._message("depth", depth_t), self.cfg.depth_scale)
+        except ros.RosMessageError as e:
+            raise DatasetError(f"{self.root}: frame {i}: {e}") from None
+        h, w = color.shape[:2]
+        intr = self._infos.get((w, h))
+        if intr is None or depth.shape != (h, w):
+            raise DatasetError(f"{self.root}: frame {i}: colour {w}x{h}, depth {depth.shape[::-1]}, camera info for "
+                               f"{sorted(self._infos)}: publish depth registered to the colour camera")
+        return Frame(i, t * 1e-9, color, depth, pose.copy(), intr)
+
+    def close(self) -> None:
+        self._reader.close()
+
+
+def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", rate: float = 30.0,
+                 start_ns: int = 1_700_000_000_000_000_000, frames: int | None = None) -> Path:
+    """Record ``seq`` as a robot would publish it on ``cfg``'s topics (odometry of the base, whose
+    pose with ``cfg.base_to_camera`` is the camera's); ``storage``: ``mcap`` or ``sqlite3``."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    out = Path(out)
+    if out.exists():
+        raise DatasetError(f"{out}: exists")
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
+    inv = invert_pose(ros.extrinsic_matrix(cfg.base_to_camera))
+    ts = ros.typestore()
+    n = len(seq) if frames is None else min(frames, len(seq))
+    cam = cfg.camera_frame or "camera_color_optical_frame"
+    with Writer(out, version=9, storage_plugin=plugin) as w:
+        conn = {"color": w.add_connection(cfg.color_topic, ros.IMAGE, typestore=ts),
+                "depth": w.add_connection(cfg.depth_topic, ros.IMAGE, typestore=ts),
+                "camera_info": w.add_connection(cfg.camera_info_topic, ros.CAMERA_INFO, typestore=ts),
+                "pose": w.add_connection(cfg.pose_topic, ros.ODOMETRY, typestore=ts)}
+        for i in range(n):
+            f = seq[i]
+            t = start_ns + int(i * 1e9 / rate)
+            base = f.pose @ inv
+            w.write(conn["pose"], t, ros.serialize(ros.odometry_message(base, t, cfg.world_frame or "odom",
+                                                                        cfg.base_frame)))
+            w.write(conn["camera_info"], t, ros.serialize(ros.camera_info_message(f.intrinsics, t, cam)))
+            w.write(conn["color"], t, ros.serialize(ros.color_message(f.color, t, cam, "bgr8")))
+            w.write(conn["depth"], t + 1000, ros.serialize(ros.depth_message(f.depth, t + 2_000_000, cam,
+                                                                             depth_scale=cfg.depth_scale)))
+    return out
