@@ -226,6 +226,16 @@ def _cmd_sim_publish(args: argparse.Namespace) -> int:
     from h3edge.serving.transport import Keys, open_session, publish_sequence
 
     seq = open_sequence(args.sequence, _ros_config(args))
+    if args.as_ros:
+        from h3edge.serving.transport import publish_ros_sequence
+
+        cfg = _ros_config(args)
+        with open_session(_zenoh_conf(args)) as session:
+            sent = publish_ros_sequence(session, seq, cfg, args.rate, args.pose_rate or 60.0, args.frames,
+                                        args.stride)
+        print(f"published {sent['frames']} frames and {sent['poses']} odometry messages as ROS 2 topics on "
+              f"{', '.join(cfg.keys().values())}")
+        return 0
     with open_session(_zenoh_conf(args)) as session:
         sent = publish_sequence(session, seq, Keys.for_map(args.map_id or "default"), args.rate, args.pose_rate,
                                 args.jitter, args.frames, args.stride, args.embed_pose)
@@ -414,7 +424,9 @@ def build_parser() -> argparse.ArgumentParser:
     pb.add_argument("--frames", type=int, help="publish only the first N (strided) frames")
     pb.add_argument("--stride", type=int, default=1)
     pb.add_argument("--embed-pose", action="store_true", help="put the pose inside each frame message instead")
-    _add_ros_args(pb)
+    pb.add_argument("--as-ros", action="store_true", help="publish as ROS 2 topics (CDR: colour, depth, camera "
+                    "info, odometry), as zenoh-bridge-ros2dds or rmw_zenoh would carry them")
+    _add_ros_args(pb, keys=True)
     _add_zenoh_args(pb)
     bg = sim.add_parser("bag", help="record a sequence as a rosbag2 (colour, depth, camera info, odometry)")
     bg.add_argument("sequence")

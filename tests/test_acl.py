@@ -137,6 +137,17 @@ def test_tls_acl_roles(acl_service):
         assert saved, saved
         with pytest.raises((TimeoutError, RemoteError)):
             query(robot, keys.save, timeout=3.0)
+        for key in (keys.load, keys.export):  # nor load or export
+            with pytest.raises((TimeoutError, RemoteError)):
+                query(robot, key, {"name": "x"}, timeout=3.0)
+        # clients see the live outputs; the intruder does not
+        live, leaked = [], []
+        subs = [laptop.declare_subscriber(f"{keys.base}/live/status", lambda s: live.append(1)),
+                intruder.declare_subscriber(f"{keys.base}/live/status", lambda s: leaked.append(1))]
+        time.sleep(3.0)
+        for sub in subs:
+            sub.undeclare()
+        assert live and not leaked
         # the laptop declares the service's status queryable: nobody's query reaches it
         hits = []
 

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from h3edge.geometry.camera import Intrinsics, backproject, invert_pose
-from h3edge.geometry.poses import interpolate_pose
+from h3edge.geometry.camera import Intrinsics, backproject
 from h3edge.io import ros
 from h3edge.io.ros import RosConfig, extrinsic_matrix
 from h3edge.serving.ros_ingest import RosIngest
@@ -167,33 +166,6 @@ def test_tf_messages_take_only_the_base_transform():
 
 
 # --------------------------------------------------------------------------- the whole ROS path
-def _base_poses(seq) -> list[np.ndarray]:
-    """The robot's base poses that, with EXTRINSIC, put the camera where the scene's frames are."""
-    inv = invert_pose(extrinsic_matrix(EXTRINSIC))
-    return [seq.poses[i] @ inv for i in range(len(seq))]
-
-
-def publish_ros(session, seq, rate: float = 4.0, key_style: str = "bridge") -> int:
-    """Publish the sequence as a ROS 2 camera + odometry would, as CDR on zenoh keys."""
-    cfg = RosConfig(key_style=key_style, base_to_camera=EXTRINSIC)
-    keys = cfg.keys()
-    put = {role: (lambda data, k=key.replace("/*", "/RIHS01_test"): session.put(k, data)) for role, key in keys.items()}
-    bases = _base_poses(seq)
-    t_start = time.time_ns()
-    for i in range(len(seq)):
-        f = seq[i]
-        ts = t_start + int(i * 1e9 / rate)
-        # odometry at twice the camera rate: at the frame and half-way to the next
-        nxt = bases[min(i + 1, len(seq) - 1)]
-        for stamp, base in ((ts, bases[i]), (ts + int(0.5e9 / rate), interpolate_pose(bases[i], nxt, 0.5))):
-            put["pose"](ros.serialize(ros.odometry_message(base, stamp, "odom", "base_link")))
-        put["camera_info"](ros.serialize(ros.camera_info_message(f.intrinsics, ts, "camera_color_optical_frame")))
-        put["color"](ros.serialize(ros.color_message(f.color, ts, "camera_color_optical_frame", "bgr8")))
-        put["depth"](ros.serialize(ros.depth_message(f.depth, ts + 3_000_000, "camera_color_optical_frame")))
-        time.sleep(1.0 / rate)
-    return len(seq)
-
-
 @pytest.fixture(scope="module")
 def ros_service(tiny_scene, tmp_path_factory):
     from h3edge.apps.demo import ServiceProcess
@@ -213,7 +185,7 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
     from h3edge.apps.demo import wait_drained
     from h3edge.apps.viewer import run_viewer
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.serving.transport import Keys, open_session, query, read_npz, wait_for_service
+    from h3edge.serving.transport import Keys, open_session, publish_ros_sequence, query, read_npz, wait_for_service
 
     svc, state = ros_service
     keys = Keys.for_map("ros")
@@ -229,7 +201,7 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
         viewer = threading.Thread(target=lambda: viewer_counts.update(run_viewer(
             session, "ros", save=str(rrd), stop=stop, render_every_s=2.0)))
         viewer.start()
-        sent = publish_ros(session, seq)
+        sent = publish_ros_sequence(session, seq, RosConfig(base_to_camera=EXTRINSIC), rate=4.0)["frames"]
         status = wait_drained(session, keys, timeout=300)
         assert status["ros"]["frames"] == sent, status["ros"]
         assert status["frames"]["mapped"] >= sent - 1, (status["dropped"], status["last_error"])

@@ -27,6 +27,7 @@ from h3edge.bench.mapping import open_dataset
 from h3edge.bench.tables import write_table
 from h3edge.config import load_profile
 from h3edge.mapping.mapper import Mapper
+from h3edge.mapping.trilinear import CORNERS
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ def vertices_per_m2(grid, mesh, level: int, samples: int, rng: np.random.Generat
     pts, _ = trimesh.sample.sample_surface(sub, samples, seed=int(rng.integers(1 << 31)))
     xn = grid.normalise(torch.from_numpy(np.asarray(pts, np.float32))).double()
     g = torch.floor(xn * scale + 0.5).long()
-    offs = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
+    offs = torch.from_numpy(CORNERS)
     corners = (g[:, None, :] + offs[None]).reshape(-1, 3)
     return len(torch.unique(corners, dim=0)) / float(sub.area), float(sub.area)
 

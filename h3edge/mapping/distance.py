@@ -7,8 +7,10 @@ What the map knows at a point, in this order:
   ``mesh_min_support``): the field's SDF, ``sdf_m = field_sdf * truncation``. Within the band
   (``|sdf_m| < truncation``) it is the distance to the surface (state ``NEAR``); beyond it only its
   sign is trusted: ``FREE`` in front (distance at least ``truncation``), ``INSIDE`` behind;
-- else in a cell depth rays crossed (:mod:`h3edge.mapping.free_space`): ``FREE``, distance at least
-  ``truncation`` (reported as ``truncation``, a lower bound);
+- else, outside every allocated voxel, in a cell depth rays crossed
+  (:mod:`h3edge.mapping.free_space`): ``FREE``, distance at least ``truncation`` (reported as
+  ``truncation``, a lower bound); an allocated voxel without observed priors may hold a surface,
+  so it is never free;
 - else ``UNKNOWN``: distance NaN. Never free.
 
 The gradient (metres per metre, pointing away from the surface) is the central difference of the
@@ -49,15 +51,16 @@ class DistanceSlice:
     resolution: float  # metres per cell
 
 
-def _field_sdf(view, pts: np.ndarray, lookup: PriorLookup) -> tuple[np.ndarray, np.ndarray]:
-    """(SDF metres, supported-in-voxel mask) at points."""
+def _field_sdf(view, pts: np.ndarray, lookup: PriorLookup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(SDF metres, supported-in-voxel mask, in-any-voxel mask) at points."""
     tr = view.voxels.cfg.truncation
-    support = lookup.support(pts)
+    _, vox = lookup(pts)
+    support = np.where(vox >= 0, lookup.support(pts), 0.0)
     inside = support >= max(view.mesh_min_support, 1e-6)
     sdf = np.full(len(pts), np.nan, np.float32)
     if inside.any():
         sdf[inside] = view.banded_sdf_np(pts[inside], np.inf, lookup) * tr
-    return sdf, inside
+    return sdf, inside, vox >= 0
 
 
 def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int = 262_144) -> DistanceSample:
@@ -70,11 +73,11 @@ def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int
     grad = np.full((len(pts), 3), np.nan, np.float32) if gradient else None
     for a in range(0, len(pts), chunk):
         p = pts[a:a + chunk]
-        s, known = _field_sdf(view, p, lookup)
+        s, known, allocated = _field_sdf(view, p, lookup)
         st = np.zeros(len(p), np.uint8)
         st[known] = np.where(s[known] >= tr, FREE, np.where(s[known] <= -tr, INSIDE, NEAR))
-        if view.free_space is not None:
-            free = ~known & view.free_space.contains(p)
+        if view.free_space is not None:  # a voxel without observed priors may hold a surface: unknown
+            free = ~allocated & view.free_space.contains(p)
             s[free], st[free] = tr, FREE
         sdf[a:a + chunk], state[a:a + chunk] = s, st
         if gradient and known.any():
@@ -84,8 +87,8 @@ def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int
             for axis in range(3):
                 off = np.zeros(3)
                 off[axis] = h
-                hi, _ = _field_sdf(view, p[k] + off, lookup)
-                lo, _ = _field_sdf(view, p[k] - off, lookup)
+                hi = _field_sdf(view, p[k] + off, lookup)[0]
+                lo = _field_sdf(view, p[k] - off, lookup)[0]
                 g[:, axis] = (hi - lo) / (2 * h)  # NaN where a side leaves the known field
             grad[a + k] = g
     return DistanceSample(sdf, state, grad)

@@ -6,7 +6,9 @@ leaf voxel size, every cell a sampled depth ray crossed in front of its surface 
 to ``depth - truncation``), so queries can answer *free* there and *unknown* elsewhere. Rays with
 no valid depth mark nothing (a missing return is not evidence of free space).
 
-Per frame it samples the pixels on a ``stride`` grid at half a voxel along each ray; the cells are
+Per frame it samples the pixels on a ``stride`` grid at half a voxel along each ray (neighbouring
+rays are ``stride * z / f`` apart at depth z: 8 px on a 525 px Kinect is 7.6 cm at 5 m, under
+the 10 cm cells; a cell no sampled ray crossed stays unknown); the cells are
 kept in a sorted key index (:class:`~h3edge.mapping.voxels.KeyIndex`), at most ``max_cells``
 (new cells past the cap are not recorded and counted in ``refused``).
 """

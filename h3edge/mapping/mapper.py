@@ -42,7 +42,7 @@ from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
 from h3edge.mapping.view import MapView
-from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
+from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, pack, unpack
 from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
@@ -233,7 +233,9 @@ class Mapper:
                                                  f"{current.depth.size} pixels)")
         self.timings.add("read", time.perf_counter() - t_frame + read_seconds)
         with self.timings.time("priors"):
+            set_before = self.voxels.prior_set.copy()
             new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
+            self._note_changes(new, set_before)
         if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
             return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
         with self.timings.time("free_space"):
@@ -284,9 +286,6 @@ class Mapper:
         sub = current.pix[::stride]
         vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
         observed = np.unique(vox[vox >= 0])
-        self._changed.append(self.voxels.voxel_keys[observed])
-        if len(self._changed) > 256:  # nobody takes them: keep the union bounded
-            self._changed = [np.unique(np.concatenate(self._changed))]
         if not self.keyframes.should_insert(observed):
             return False
         scores = None
@@ -350,9 +349,19 @@ class Mapper:
                        self.cfg.mesh_resolution, self.frames_mapped,
                        self.cfg.mesh_min_support, self.free_space)
 
+    def _note_changes(self, new_keys: np.ndarray, prior_set_before: np.ndarray) -> None:
+        """Remember where this frame changed the map's geometry: its new voxels, and the voxels around
+        the vertices whose prior it set (training refines everywhere a little; a live view refreshes
+        those regions on its own schedule)."""
+        newly = np.flatnonzero(self.voxels.prior_set[:len(prior_set_before)] & ~prior_set_before)
+        ijk = unpack(self.voxels.vertex_keys[newly])
+        self._changed.append(np.concatenate([new_keys, pack(ijk), pack(ijk - 1)]))
+        if len(self._changed) > 256:  # nobody takes them: keep the union bounded
+            self._changed = [np.unique(np.concatenate(self._changed))]
+
     def take_changed_keys(self) -> np.ndarray:
-        """Keys of the voxels allocated or observed by the frames mapped since the last call (the
-        regions whose mesh a live view should rebuild)."""
+        """Keys of the voxels (some maybe unallocated) around the geometry the frames mapped since the
+        last call allocated or initialised: the regions whose mesh a live view should rebuild now."""
         parts, self._changed = self._changed, []
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 

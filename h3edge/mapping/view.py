@@ -100,17 +100,35 @@ class MapView:
             out[near] = self.field.sdf(p, self.voxels, prior=known)[0].cpu().numpy()
         return out
 
+    def block_meshes(self, blocks: np.ndarray, block_voxels: int, resolution: int | None = None
+                     ) -> list[trimesh.Trimesh]:
+        """The meshes of map blocks ``blocks`` (B, 3) (cubes of ``block_voxels`` leaf voxels: block b
+        holds the voxels with ``floor(ijk / block_voxels) == b``), one lookup table for all of them."""
+        from h3edge.mapping.voxels import unpack
+
+        keys = self.voxels.voxel_keys
+        of_block = np.floor_divide(unpack(keys), block_voxels)
+        lookup = PriorLookup(self.voxels)
+        out = []
+        for b in np.asarray(blocks).reshape(-1, 3):
+            mine = keys[np.all(of_block == b, axis=1)]
+            out.append(self.mesh(resolution, voxel_keys=mine, lookup=lookup) if len(mine) else trimesh.Trimesh())
+        return out
+
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
-             prior_margin: float | None = 1.0) -> trimesh.Trimesh:
+             prior_margin: float | None = 1.0, voxel_keys: np.ndarray | None = None,
+             lookup: PriorLookup | None = None) -> trimesh.Trimesh:
         """Marching-cubes mesh of the map, vertex colours from the colour field. The residual MLP is
         evaluated at lattice points whose prior is within ``prior_margin`` truncation units of the
         surface (None: everywhere), where the zero crossing can be. Cubes whose lattice points lack
-        observed priors (support under ``mesh_min_support``) are left out."""
+        observed priors (support under ``mesh_min_support``) are left out. ``voxel_keys``: mesh only
+        these voxels; ``lookup``: this view's :class:`PriorLookup`, when the caller has one."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
-        lookup = PriorLookup(self.voxels)
+        lookup = lookup or PriorLookup(self.voxels)
         margin = np.inf if prior_margin is None else prior_margin
-        return extract_mesh(self.voxels.voxel_keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup),
+        keys = self.voxels.voxel_keys if voxel_keys is None else voxel_keys
+        return extract_mesh(keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup),
                             resolution or self.mesh_resolution,
                             (lambda x: self.color_np(x, lookup)) if color else None, aabb=aabb,
                             support_fn=lookup.support, min_support=self.mesh_min_support)

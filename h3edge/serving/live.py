@@ -9,9 +9,11 @@ Every ``live_interval_s`` (``<base>`` = ``h3edge/<map-id>``):
 - ``<base>/live/frame``: the latest mapped frame's colour image as JPEG (at most
   ``live_frame_width`` wide), with its pose and intrinsics in a frame message;
 - ``<base>/live/mesh/<i>_<j>_<k>``: the PLY mesh (vertex colours) of block (i, j, k), a cube of
-  ``live_block_voxels`` leaf voxels, for each block the mapped frames allocated or observed voxels
-  in since the last update (at most ``live_max_blocks`` per update, the rest at the next). A block
-  mesh replaces that block's previous one; the union of the latest block meshes is the map.
+  ``live_block_voxels`` leaf voxels: each block where the mapped frames allocated voxels or set
+  priors since the last update, and a share of the others, stalest first, so that every block is
+  rebuilt at least every ``live_refresh_s`` (training refines the whole map a little all the
+  time); at most ``live_max_blocks`` per update, the rest at the next. A block mesh replaces that
+  block's previous one; the union of the latest block meshes is the map.
 
 Runs on its own thread against the service's frozen map copies (never on the mapper thread).
 """
@@ -42,19 +44,15 @@ def parse_block_key(text: str) -> tuple[int, int, int]:
     return i, j, k
 
 
-def block_aabb(block: np.ndarray, block_voxels: int, voxel_size: float) -> np.ndarray:
-    """The aabb that selects exactly the leaf voxels of ``block`` (for :meth:`MapView.mesh`)."""
-    b = np.asarray(block, np.float64)
-    return np.stack([(b * block_voxels + 0.5) * voxel_size, ((b + 1) * block_voxels - 0.5) * voxel_size])
-
-
 class LivePublisher:
     """Publishes the service's live outputs on ``keys`` (module docstring)."""
 
     def __init__(self, service, session: zenoh.Session, keys, interval_s: float, block_voxels: int,
-                 max_blocks: int, frame_width: int):
+                 max_blocks: int, frame_width: int, refresh_s: float = 60.0):
         self.service, self.session, self.keys = service, session, keys
         self.interval_s, self.block_voxels, self.max_blocks = interval_s, block_voxels, max_blocks
+        self.refresh_s = refresh_s
+        self._sent: dict[tuple[int, int, int], float] = {}  # block -> when its mesh was last published
         self.frame_width = frame_width
         self._pending: set[tuple[int, int, int]] = set()
         self._stop = threading.Event()
@@ -96,14 +94,19 @@ class LivePublisher:
         if len(changed):
             blocks = np.unique(np.floor_divide(unpack(changed), self.block_voxels), axis=0)
             self._pending.update(tuple(int(v) for v in b) for b in blocks)
-        todo = sorted(self._pending)[: self.max_blocks]
+        if self.refresh_s > 0:  # the stalest share of the map's blocks
+            every = [tuple(int(v) for v in b) for b in
+                     np.unique(np.floor_divide(unpack(view.voxels.voxel_keys), self.block_voxels), axis=0)]
+            share = int(np.ceil(len(every) * self.interval_s / self.refresh_s))
+            self._pending.update(sorted(every, key=lambda b: self._sent.get(b, -np.inf))[:share])
+        todo = sorted(self._pending, key=lambda b: self._sent.get(b, -np.inf))[: self.max_blocks]
         sent, t0 = 0, time.perf_counter()
-        for block in todo:
+        meshes = view.block_meshes(np.array(todo, np.int64).reshape(-1, 3), self.block_voxels) if todo else []
+        for block, mesh in zip(todo, meshes):
             self._pending.discard(block)
-            box = block_aabb(np.array(block), self.block_voxels, view.voxel_size)
-            mesh = view.mesh(None, box)
             data = mesh.export(file_type="ply") if len(mesh.faces) else b""
             self.session.put(f"{self.keys.base}/live/mesh/{block_key(np.array(block))}", data)
+            self._sent[block] = time.monotonic()
             sent += len(data)
         if todo:
             self.updates += 1

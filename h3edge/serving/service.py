@@ -99,6 +99,7 @@ class ServiceConfig:
     live_block_voxels: int = 8  # leaf voxels per edge of a live mesh block
     live_max_blocks: int = 64  # block meshes per update (the rest go in the next)
     live_frame_width: int = 320  # the latest frame's thumbnail width
+    live_refresh_s: float = 60.0  # every block's mesh is rebuilt at least this often (0: only on changes)
     timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
 
 

@@ -123,7 +123,7 @@ class ZenohServer:
             from h3edge.serving.live import LivePublisher
 
             self.live = LivePublisher(s, self.session, k, cfg.live_interval_s, cfg.live_block_voxels,
-                                      cfg.live_max_blocks, cfg.live_frame_width)
+                                      cfg.live_max_blocks, cfg.live_frame_width, cfg.live_refresh_s)
             self.live.start()
         log.info("serving map under %s/**", k.base)
 
@@ -364,3 +364,65 @@ def publish_sequence(session: zenoh.Session, seq, keys: Keys, rate: float = 30.0
     pub_f.undeclare()
     pub_p.undeclare()
     return sent
+
+
+def publish_ros_sequence(session: zenoh.Session, seq, cfg, rate: float = 30.0, pose_rate: float = 60.0,
+                         frames: int | None = None, stride: int = 1, stop: threading.Event | None = None,
+                         encoded: list | None = None) -> dict:
+    """Stream a sequence as a ROS 2 robot would through zenoh (``cfg``: a
+    :class:`~h3edge.io.ros.RosConfig`: its topics and key style): colour ``bgr8`` + depth ``16UC1``
+    + camera info at ``rate``, odometry of the base (the camera pose composed with the inverse of
+    ``cfg.base_to_camera``) at ``pose_rate``, all as CDR. ``encoded``: pre-serialised frames
+    ``[(color, depth, info)]`` to send in turn instead of encoding each (a rate benchmark)."""
+    from h3edge.geometry.camera import invert_pose
+    from h3edge.geometry.poses import interpolate_pose
+    from h3edge.io import ros
+
+    keys = {role: key.replace("/*", "/RIHS01_h3edge") for role, key in cfg.keys().items()}
+    pubs = {role: session.declare_publisher(key) for role, key in keys.items()}
+    inv = invert_pose(ros.extrinsic_matrix(cfg.base_to_camera or "identity"))
+    idx = list(range(0, len(seq), max(1, stride)))[:frames]
+    bases = [seq.poses[i] @ inv for i in idx]
+    cam = cfg.camera_frame or "camera_color_optical_frame"
+    world = cfg.world_frame or "odom"
+    t0 = time.time() + 0.2
+    per_frame = max(1, round(pose_rate / rate))
+    sent = {"frames": 0, "poses": 0}
+    for n, i in enumerate(idx):
+        t_frame = t0 + n / rate
+        delay = t_frame - time.time()
+        if delay > 0:
+            if stop is None:
+                time.sleep(delay)
+            elif stop.wait(delay):
+                break
+        ts = int(t_frame * 1e9)
+        nxt = bases[min(n + 1, len(bases) - 1)]
+        for k in range(per_frame):
+            a = k / per_frame
+            pubs["pose"].put(ros.serialize(ros.odometry_message(interpolate_pose(bases[n], nxt, a),
+                                                                ts + int(a * 1e9 / rate), world, cfg.base_frame)))
+            sent["poses"] += 1
+        if encoded is not None:
+            color, depth, info = encoded[n % len(encoded)]
+            color, depth, info = (restamp(color, ts), restamp(depth, ts), restamp(info, ts))
+        else:
+            f = seq[i]
+            info = ros.serialize(ros.camera_info_message(f.intrinsics, ts, cam))
+            color = ros.serialize(ros.color_message(f.color, ts, cam, "bgr8"))
+            depth = ros.serialize(ros.depth_message(f.depth, ts, cam, depth_scale=cfg.depth_scale))
+        pubs["camera_info"].put(info)
+        pubs["color"].put(color)
+        pubs["depth"].put(depth)
+        sent["frames"] += 1
+    for p in pubs.values():
+        p.undeclare()
+    return sent
+
+
+def restamp(cdr: bytes, stamp_ns: int) -> bytes:
+    """A CDR message whose first field is a ``std_msgs/Header`` with its stamp replaced (bytes 4-11
+    after the encapsulation header: sec int32, nanosec uint32, little endian)."""
+    import struct
+
+    return cdr[:4] + struct.pack("<iI", stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000) + cdr[12:]
