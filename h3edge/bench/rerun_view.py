@@ -59,6 +59,7 @@ def record(seq, frames: int, rate: float, profile: str, work: Path) -> Path:
 
 def read_recording(rrd: Path) -> dict:
     """The latest value of each entity of interest, and the scalar series."""
+    import pyarrow as pa
     from rerun.chunk import RrdReader
 
     latest: dict[str, dict] = {}
@@ -68,8 +69,7 @@ def read_recording(rrd: Path) -> dict:
         rb = ch.to_record_batch()
         cols = {n.split(":")[-1]: rb.column(n) for n in rb.schema.names}
         t = cols.get("time")
-        times = [x.timestamp() if hasattr(x, "timestamp") else float(x) for x in t.to_pylist()] if t is not None \
-            else [0.0] * rb.num_rows
+        times = [v * 1e-9 for v in t.cast(pa.int64()).to_pylist()] if t is not None else [0.0] * rb.num_rows
         if "scalars" in cols:
             for tt, v in zip(times, cols["scalars"].to_pylist()):
                 if v:
@@ -86,18 +86,17 @@ def read_recording(rrd: Path) -> dict:
 def _image(entry: dict) -> np.ndarray | None:
     if "buffer" not in entry or "format" not in entry:
         return None
-    fmt = entry["format"]
+    fmt = entry["format"][0]  # component batches of one
     w, h = fmt["width"], fmt["height"]
-    buf = np.frombuffer(bytes(entry["buffer"]), np.uint8)
+    buf = np.frombuffer(bytes(entry["buffer"][0]), np.uint8)
     return buf.reshape(h, w, -1)[..., :3] if buf.size >= w * h * 3 else None
 
 
-def draw(data: dict, out: Path, max_faces: int = 60_000) -> dict:
+def draw(data: dict, out: Path) -> dict:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     latest, series = data["latest"], data["series"]
     verts, faces, cols = [], [], []
@@ -113,23 +112,43 @@ def draw(data: dict, out: Path, max_faces: int = 60_000) -> dict:
             cols.append(c)
             n += len(v)
     V, F, C = np.concatenate(verts), np.concatenate(faces), np.concatenate(cols).astype(np.float64) / 255
-    keep = np.random.default_rng(0).choice(len(F), min(max_faces, len(F)), replace=False)
     fig = plt.figure(figsize=(16, 9))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
-    tri = V[F[keep]]
-    ax.add_collection3d(Poly3DCollection(tri, facecolors=C[F[keep]].mean(1), linewidths=0))
+    ax = fig.add_subplot(1, 2, 1)
+    # the scene as the viewer's 3D view shows it: from behind and above the latest camera
+    cam = latest.get("/world/camera", {})
+    R = np.asarray(cam.get("mat3x3", [np.eye(3).reshape(-1).tolist()])[0], np.float64).reshape(3, 3, order="F")
+    t = np.asarray(cam.get("translation", [[0.0, 0.0, 0.0]])[0], np.float64)
+    eye = t - 1.5 * R[:, 2] - 0.8 * R[:, 1]  # back along the view axis, up (camera y points down)
+    fwd = np.median(V, 0) - eye  # looking at the middle of the map
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, -R[:, 1])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    W2C = np.stack([right, down, fwd])
+    f_px, w_px, h_px = 700.0, 960, 720
+
+    def project(p):
+        q = (np.asarray(p) - eye) @ W2C.T
+        u = f_px * q[..., 0] / q[..., 2] + w_px / 2
+        return np.stack([u, f_px * q[..., 1] / q[..., 2] + h_px / 2], -1), q[..., 2]
+
+    uv, z = project(V)
+    tri_z = z[F].mean(1)
+    ok = (z[F] > 0.1).all(1)
+    order = np.argsort(-tri_z[ok])
+    from matplotlib.collections import PolyCollection
+
+    ax.add_collection(PolyCollection(uv[F[ok]][order], facecolors=C[F[ok]].mean(1)[order], edgecolors="none"))
     traj = latest.get("/world/trajectory", {}).get("strips")
     if traj:
-        p = np.asarray(traj[0])
-        ax.plot(p[:, 0], p[:, 1], p[:, 2], color="orange", lw=2)
-    lo, hi = V.min(0), V.max(0)
-    c, r = (lo + hi) / 2, (hi - lo).max() / 2
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
-    ax.view_init(elev=35, azim=-60)
+        tp, tz = project(np.asarray(traj[0]))
+        ax.plot(tp[tz > 0.1, 0], tp[tz > 0.1, 1], color="orange", lw=2)
+    ax.set_xlim(0, w_px)
+    ax.set_ylim(h_px, 0)
+    ax.set_aspect("equal")
+    ax.axis("off")
     blocks = sum(1 for p in latest if p.startswith("/world/mesh/"))
-    ax.set_title(f"world/mesh: {blocks} blocks, {len(F)} faces (drawn {len(keep)}); world/trajectory")
+    ax.set_title(f"world/mesh ({blocks} block meshes, {len(F)} faces) and world/trajectory, from behind the camera")
     for k, (path, title) in enumerate((("/world/camera/image", "world/camera/image (latest frame)"),
                                        ("/world/render/color", "world/render/color (map rendered at that pose)"))):
         img = _image(latest.get(path, {}))

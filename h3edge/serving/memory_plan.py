@@ -1,6 +1,6 @@
 """The service's memory plan: the byte budget split up front into the hash tables, the voxel cap,
-a query's map copy and scratch, the checkpoint capture, the largest admitted frame's buffers, and
-what is left for keyframes (which sets the keyframe cap)."""
+a query's map copy and scratch, the checkpoint capture, the largest admitted frame's buffers, the
+observed free space at its cap, and what is left for keyframes (which sets the keyframe cap)."""
 
 from __future__ import annotations
 
@@ -34,10 +34,13 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     checkpoint = tables * 3 // 4 + voxels // 2  # the state captured for the checkpoint writer
     frames = frame_pixels * (FRAME_SCRATCH_BYTES_PER_PIXEL + RAY_TABLES * RAY_TABLE_BYTES_PER_PIXEL
                              + (ingest_queue + 1) * ENCODED_BYTES_PER_PIXEL)
-    left = budget - tables - voxels - snapshot - working - checkpoint - frames
+    # observed free space at its cap (keys, sorted keys, ids), twice: the map and a query's copy
+    free = 2 * 24 * settings.free_space.max_cells if settings.free_space.enabled else 0
+    left = budget - tables - voxels - snapshot - working - checkpoint - frames - free
     cap = max(8, left // max(1, keyframe_bytes))
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
             "query_working_set": working, "checkpoint_capture": checkpoint, "frame_buffers": frames,
+            "free_space": free,
             "keyframes": max(0, left),
             "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap), "fits": left >= 8 * keyframe_bytes}
 
