@@ -44,6 +44,7 @@ from h3edge.apps.offline import run_offline
 from h3edge.bench.tables import markdown_table
 from h3edge.config import Profile, load_profile, parse_variant
 from h3edge.eval.metrics import psnr
+from h3edge.io.sequence import write_color
 from h3edge.mapping.mapper import MapSettings
 from h3edge.mapping.texture_patterns import PLAIN, RICH, WEAK
 
@@ -244,7 +245,7 @@ def class_picture(mapper, seq, path: Path, views: int = 3) -> dict:
                                   (PLAIN, "unstructured rich (identity)"))):
         cv2.rectangle(img, (6, 6 + 16 * k), (18, 18 + 16 * k), CLASS_BGR[c], -1)
         cv2.putText(img, name, (24, 17 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-    cv2.imwrite(str(path), img)
+    write_color(Path(path), img[..., ::-1])
     return {k: int((vcls == c).sum()) for k, c in (("rich", RICH), ("weak", WEAK), ("plain", PLAIN))}
 
 

@@ -1,4 +1,4 @@
-"""Benchmark: the ROS 2 path and the outputs for planners and viewers, against issue 18's targets.
+"""Benchmark: the ROS 2 path and the outputs for planners and viewers, against their targets.
 
 1. ROS ingest: the per-message cost of turning CDR colour + depth + camera info + odometry into
    a queued frame (:class:`~h3edge.serving.ros_ingest.RosIngest`, median over frames), and a real

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+import h3edge.io.ros as ros
 from h3edge.geometry.camera import Intrinsics, invert_pose
 from h3edge.geometry.poses import interpolate_pose
-from h3edge.io import ros
 from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import DatasetError, Frame, SequenceBase
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from h3edge.io.sequence import Sequence
+from h3edge.io.sequence import Sequence, write_color
 
 
 def depth_to_rgb(depth: np.ndarray, max_depth: float = 6.0) -> np.ndarray:
@@ -36,5 +36,4 @@ def contact_sheet(seq: Sequence, n: int = 12, cols: int = 4, tile_width: int = 3
 
 
 def write_contact_sheet(seq: Sequence, path: str | Path, n: int = 12) -> None:
-    if not cv2.imwrite(str(path), cv2.cvtColor(contact_sheet(seq, n), cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: cannot write PNG")
+    write_color(Path(path), contact_sheet(seq, n))
