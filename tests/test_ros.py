@@ -260,3 +260,46 @@ def test_save_load_and_export_at_runtime(ros_service):
             query(session, keys.load, {"name": "never-saved"}, timeout=30)
         st2 = json.loads(query(session, keys.status, timeout=10))
         assert st2["map"]["voxels"] == st["map"]["voxels"] and st2["mapper_alive"]
+
+
+def test_rmw_zenoh_keys_reach_an_in_process_service(tiny_scene, tmp_path):
+    """The rmw_zenoh key layout (<domain>/<topic>/<dds type>/<hash>) end to end, in one process."""
+    from h3edge.apps.demo import free_port
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.field import FieldConfig
+    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.serving.service import MapService, ServiceConfig
+    from h3edge.serving.transport import ZenohServer, open_session, publish_ros_sequence, zenoh_config
+
+    cfg = RosConfig(key_style="rmw_zenoh", domain=7, base_to_camera=EXTRINSIC)
+    settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128),
+                           field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))
+    svc = MapService(settings, ServiceConfig(map_id="rmw", state_dir=str(tmp_path), checkpoint_interval_s=0.0,
+                                             memory_budget_mb=256, live_interval_s=0.0), ros=cfg)
+    port = free_port()
+    server_session = open_session(zenoh_config(None, "peer", None, [f"tcp/127.0.0.1:{port}"], False))
+    server = ZenohServer(svc, server_session, "rmw")
+    server.start()
+    svc.start()
+    try:
+        with open_session(zenoh_config(None, "client", [f"tcp/127.0.0.1:{port}"], None, False)) as robot:
+            time.sleep(0.5)
+            sent = publish_ros_sequence(robot, ReplicaSequence(tiny_scene), cfg, rate=10.0, frames=3)
+            end = time.monotonic() + 30
+            while svc.status()["ros"]["frames"] < sent["frames"] and time.monotonic() < end:
+                time.sleep(0.1)
+        st = svc.status()
+        assert st["ros"]["frames"] == 3 and st["poses"]["received"] == sent["poses"], st["ros"]
+        assert all(k.startswith("7/") and "::msg::dds_::" in k for k in st["ros"]["keys"].values())
+    finally:
+        server.close()
+        svc.stop(checkpoint=False)
+        server_session.close()
+
+
+def test_serve_with_ros_refuses_to_start_without_an_extrinsic(tmp_path, capsys):
+    from h3edge.cli import main
+
+    rc = main(["serve", "--profile", str(PROFILE), "--state-dir", str(tmp_path), "--ros", "--listen",
+               "tcp/127.0.0.1:0", "--no-multicast"])
+    assert rc == 2 and "base_to_camera" in capsys.readouterr().err
