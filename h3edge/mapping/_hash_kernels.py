@@ -25,6 +25,7 @@ def cell(xn, i, scale):
 @nb.njit(inline="always", fastmath=True)
 def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, d0, d1, d2, c):
     """Row offset inside the level and trilinear weight of corner c of the cell."""
+    w = corner_weight(fx, fy, fz, c)
     cx = ix + (c & 1)
     cy = iy + ((c >> 1) & 1)
     cz = iz + ((c >> 2) & 1)
@@ -32,7 +33,7 @@ def corner(ix, iy, iz, fx, fy, fz, side, T, p0, p1, p2, d0, d1, d2, c):
         h = cx + side * (cy + side * cz)
     else:
         h = (cx * p0 + d0) ^ (cy * p1 + d1) ^ (cz * p2 + d2)
-    return h & (T - 1), corner_weight(fx, fy, fz, c)
+    return h & (T - 1), w
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def fwd(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):

@@ -7,8 +7,9 @@ to ``depth - truncation``), so queries can answer *free* there and *unknown* els
 no valid depth mark nothing (a missing return is not evidence of free space).
 
 Per frame it samples the pixels on a ``stride`` grid at half a voxel along each ray (neighbouring
-rays are ``stride * z / f`` apart at depth z: 8 px on a 525 px Kinect is 7.6 cm at 5 m, under
-the 10 cm cells; a cell no sampled ray crossed stays unknown); the cells are
+rays are ``stride * z / f`` apart at depth z: 16 px on a 525 px Kinect is 9 cm at 3 m; farther
+cells one frame's rays skip are filled by the next views, and a cell no sampled ray ever crossed
+stays unknown); the cells are
 kept in a sorted key index (:class:`~h3edge.mapping.voxels.KeyIndex`), at most ``max_cells``
 (new cells past the cap are not recorded and counted in ``refused``).
 """
@@ -26,7 +27,9 @@ from h3edge.mapping.voxels import KeyIndex, pack
 @dataclass(frozen=True)
 class FreeSpaceConfig:
     enabled: bool = True
-    stride: int = 8  # pixel stride of the rays that mark free space
+    # pixel stride of the rays that mark free space: 16 costs ~7 ms a 640x480 frame and records 97 %
+    # of the cells stride 8 does (~30 ms; measured on the default simulated scene)
+    stride: int = 16
     max_cells: int = 2_000_000  # cap (24 bytes a cell)
 
 

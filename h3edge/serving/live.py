@@ -15,7 +15,10 @@ Every ``live_interval_s`` (``<base>`` = ``h3edge/<map-id>``):
   time); at most ``live_max_blocks`` per update, the rest at the next. A block mesh replaces that
   block's previous one; the union of the latest block meshes is the map.
 
-Runs on its own thread against the service's frozen map copies (never on the mapper thread).
+Runs on its own thread against the service's frozen map copies (never on the mapper thread), and
+only while someone subscribes to ``<base>/live/status`` (zenoh's matching status; every viewer does):
+with nobody watching it takes no map copies and builds no meshes. A viewer that starts watching
+gets every block, ``live_max_blocks`` per update, then the changes.
 """
 
 from __future__ import annotations
@@ -53,6 +56,8 @@ class LivePublisher:
         self.interval_s, self.block_voxels, self.max_blocks = interval_s, block_voxels, max_blocks
         self.refresh_s = refresh_s
         self._sent: dict[tuple[int, int, int], float] = {}  # block -> when its mesh was last published
+        self._status_pub = session.declare_publisher(f"{keys.base}/live/status")
+        self._watched = False
         self.frame_width = frame_width
         self._pending: set[tuple[int, int, int]] = set()
         self._stop = threading.Event()
@@ -68,6 +73,7 @@ class LivePublisher:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(30)
+        self._status_pub.undeclare()
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval_s):
@@ -79,7 +85,18 @@ class LivePublisher:
     def publish_once(self) -> dict:
         """One update (status, new poses, latest frame, changed blocks); what it sent."""
         svc = self.service
-        self.session.put(f"{self.keys.base}/live/status", json.dumps(svc.status()).encode())
+        if not self._status_pub.matching_status.matching:
+            self._watched = False
+            return {"watched": False}
+        if not self._watched:  # a new viewer: every block, stalest (all of them) first
+            self._watched = True
+            self._sent.clear()
+            self._pending.clear()
+            if svc.mapper.field is not None:
+                keys = svc.view().voxels.voxel_keys
+                self._pending.update(tuple(int(v) for v in b) for b in
+                                     np.unique(np.floor_divide(unpack(keys), self.block_voxels), axis=0))
+        self._status_pub.put(json.dumps(svc.status()).encode())
         poses = svc.take_mapped_poses()
         if poses:
             doc = {"poses": [{"t": int(t), "matrix": np.asarray(p).reshape(-1).tolist()} for t, p in poses]}
