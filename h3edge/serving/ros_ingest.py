@@ -138,6 +138,8 @@ class RosIngest:
                     self.drops["ros_unpaired"] += 1
             h, w = color.array.shape[:2]
             intr = self._infos.get((w, h))
+            self._next_id += 1
+            frame_id = self._next_id
         if depth.array.shape != (h, w):
             self._drop("ros_size_mismatch", f"colour {w}x{h} and depth {depth.array.shape[1]}x{depth.array.shape[0]}"
                                             " differ: publish depth registered to the colour camera")
@@ -145,9 +147,9 @@ class RosIngest:
         if intr is None:
             self._drop("ros_no_camera_info", f"no camera info for {w}x{h} images yet on {self.cfg.camera_info_topic}")
             return
-        self._next_id += 1
-        msg = FrameMessage(color.stamp, self._next_id, color.array, depth.array, intr, None, color.frame_id)
-        self.frames += 1
+        msg = FrameMessage(color.stamp, frame_id, color.array, depth.array, intr, None, color.frame_id)
+        with self._lock:
+            self.frames += 1
         self.submit_frame(encode_frame(msg, "raw_rgb8", "raw_f32"))
 
     # ------------------------------------------------------------------- poses
