@@ -202,9 +202,15 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
             session, "ros", save=str(rrd), stop=stop, render_every_s=2.0)))
         viewer.start()
         sent = publish_ros_sequence(session, seq, RosConfig(base_to_camera=EXTRINSIC), rate=4.0)["frames"]
+        end = time.monotonic() + 60  # the last messages may still be on their way
+        while json.loads(query(session, keys.status, timeout=10))["ros"]["frames"] < sent and time.monotonic() < end:
+            time.sleep(0.2)
         status = wait_drained(session, keys, timeout=300)
         assert status["ros"]["frames"] == sent, status["ros"]
-        assert status["frames"]["mapped"] >= sent - 1, (status["dropped"], status["last_error"])
+        # a loaded machine may map slower than 4 Hz: the excess is dropped by the queue policy only
+        assert set(status["dropped"]) <= {"queue_full"}, (status["dropped"], status["last_error"])
+        assert status["frames"]["mapped"] + status["frames"]["dropped"] == status["frames"]["received"] == sent
+        assert status["frames"]["mapped"] >= sent // 2
         time.sleep(3.5)  # the next live updates
         stop.set()
         viewer.join(60)
@@ -227,12 +233,13 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
         assert sl["occupancy"].shape == (120, 120) and set(np.unique(sl["occupancy"])) <= {-1, 0, 100}
         assert (sl["occupancy"] == 0).any() and (sl["occupancy"] == -1).any()
     assert blocks and max(blocks.values()) < full, (blocks, full)
-    assert viewer_counts["meshes"] >= 1 and viewer_counts["poses"] >= sent - 1 and viewer_counts["frames"] >= 1
+    assert viewer_counts["meshes"] >= 1 and viewer_counts["frames"] >= 1
+    assert viewer_counts["poses"] >= status["frames"]["mapped"]
     from rerun.chunk import RrdReader
 
     summary = RrdReader(str(rrd)).store().summary()
     for entity in ("/world/mesh/", "/world/trajectory", "/world/camera/image", "/world/render/color",
-                   "/status/frames_mapped"):
+                   "/status/frames_mapped", "/timings/frame"):
         assert entity in summary, summary
 
 

@@ -8,8 +8,8 @@ Entities logged (one ``time`` timeline, the service's frame stamps):
   image at ``world/camera/image`` and depth at ``world/camera/depth``;
 - ``world/render``: with ``render_every_s``, a render of the map from the latest pose (colour +
   depth), asked of the service's ``render`` query;
-- ``timings/<component>``: per-component median milliseconds from the service's profile
-  (``Scalars``), and ``status/*`` counters.
+- ``timings/<component>``: per-component median milliseconds from the service's ``live/timings``
+  stream (``Scalars``), and ``status/*`` counters.
 
 The recording goes to a live viewer (``spawn``), a Rerun server (``connect``) or an ``.rrd`` file
 (``save``: headless, what the tests read back).
@@ -34,22 +34,23 @@ log = logging.getLogger(__name__)
 class LiveViewer:
     """Subscribes to one map's live keys and logs them to a Rerun recording stream."""
 
-    def __init__(self, session, keys: Keys, recording, render_every_s: float = 0.0, profile_every_s: float = 5.0):
+    def __init__(self, session, keys: Keys, recording, render_every_s: float = 0.0):
         import rerun as rr
 
         self.rr, self.rec = rr, recording
         self.session, self.keys = session, keys
-        self.render_every_s, self.profile_every_s = render_every_s, profile_every_s
+        self.render_every_s = render_every_s
         self.trajectory: list[np.ndarray] = []
         self.blocks: dict[str, int] = {}  # block -> faces of its latest mesh
-        self.counts = {"status": 0, "poses": 0, "frames": 0, "meshes": 0, "renders": 0, "profiles": 0}
+        self.counts = {"status": 0, "timings": 0, "poses": 0, "frames": 0, "meshes": 0, "renders": 0}
         self._lock = threading.Lock()
         self._latest: tuple[int, np.ndarray, object] | None = None  # stamp, pose, intrinsics
         self._subs: list = []
 
     def start(self) -> None:
         base = f"{self.keys.base}/live"
-        for key, fn in ((f"{base}/status", self._on_status), (f"{base}/poses", self._on_poses),
+        for key, fn in ((f"{base}/status", self._on_status), (f"{base}/timings", self._on_timings),
+                        (f"{base}/poses", self._on_poses),
                         (f"{base}/frame", self._on_frame), (f"{base}/mesh/*", self._on_mesh)):
             self._subs.append(self.session.declare_subscriber(key, self._guard(fn)))
 
@@ -80,6 +81,13 @@ class LiveViewer:
             if value is not None:
                 self.rec.log(f"status/{name}", self.rr.Scalars(float(value)))
         self.counts["status"] += 1
+
+    def _on_timings(self, sample) -> None:
+        self.rec.set_time("time", timestamp=time.time())
+        for name, t in json.loads(sample.payload.to_bytes()).items():
+            if isinstance(t, dict) and t.get("median_ms") is not None:
+                self.rec.log(f"timings/{name}", self.rr.Scalars(float(t["median_ms"])))
+        self.counts["timings"] += 1
 
     def _on_poses(self, sample) -> None:
         rr = self.rr
@@ -129,23 +137,10 @@ class LiveViewer:
 
     # ----------------------------------------------------------- polled queries
     def poll(self, now: float, last: dict) -> None:
-        """Renders and profile plots at their rates (called from the viewer's loop)."""
+        """Renders from the latest pose at their rate (called from the viewer's loop)."""
         if self.render_every_s > 0 and self._latest is not None and now - last.get("render", 0) > self.render_every_s:
             last["render"] = now
             self._render()
-        if self.profile_every_s > 0 and now - last.get("profile", 0) > self.profile_every_s:
-            last["profile"] = now
-            try:
-                doc = json.loads(query(self.session, self.keys.profile, timeout=10))
-            except (RemoteError, TimeoutError) as e:
-                log.warning("profile: %s", e)
-                return
-            with self._lock:
-                self.rec.set_time("time", timestamp=time.time())
-                for name, t in doc.get("components", {}).items():
-                    if isinstance(t, dict) and t.get("median_ms") is not None:
-                        self.rec.log(f"timings/{name}", self.rr.Scalars(float(t["median_ms"])))
-                self.counts["profiles"] += 1
 
     def _render(self) -> None:
         from h3edge.io.protocol import pose_to_json

@@ -4,6 +4,8 @@ for anyone subscribed on zenoh.
 Every ``live_interval_s`` (``<base>`` = ``h3edge/<map-id>``):
 
 - ``<base>/live/status``: the status document (JSON);
+- ``<base>/live/timings``: the per-component timing summary (JSON ``{component: {median_ms, p95_ms,
+  mean_ms, total_s, count}}``);
 - ``<base>/live/poses``: the camera poses of the frames mapped since the last update (JSON
   ``{"poses": [{"t": ns, "matrix": [16 row-major]}]}``; a viewer accumulates the trajectory);
 - ``<base>/live/frame``: the latest mapped frame's colour image as JPEG (at most
@@ -97,6 +99,7 @@ class LivePublisher:
                 self._pending.update(tuple(int(v) for v in b) for b in
                                      np.unique(np.floor_divide(unpack(keys), self.block_voxels), axis=0))
         self._status_pub.put(json.dumps(svc.status()).encode())
+        self.session.put(f"{self.keys.base}/live/timings", json.dumps(svc.mapper.timings.summary()).encode())
         poses = svc.take_mapped_poses()
         if poses:
             doc = {"poses": [{"t": int(t), "matrix": np.asarray(p).reshape(-1).tolist()} for t, p in poses]}
