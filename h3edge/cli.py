@@ -200,7 +200,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
     except ImportError:
         raise ImportError("h3edge view needs rerun-sdk: pip install 'h3edge[view]'") from None
     if not (args.save or args.rerun_url or args.spawn):
-        raise SystemExit("error: view needs --save FILE.rrd, --connect URL or --spawn")
+        raise SystemExit("error: view needs --save FILE.rrd, --rerun-url URL or --spawn")
     with open_session(_zenoh_conf(args)) as session:
         counts = run_viewer(session, args.map_id or "default", args.save, args.spawn, args.rerun_url,
                             args.duration, args.render_every)

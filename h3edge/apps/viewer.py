@@ -181,7 +181,7 @@ def run_viewer(session, map_id: str, save: str | None = None, spawn: bool = Fals
     elif spawn:
         rec.spawn()
     else:
-        raise ValueError("view needs --save FILE.rrd, --connect URL or --spawn")
+        raise ValueError("view needs a sink: save (an .rrd file), connect (a Rerun server URL) or spawn")
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     viewer = LiveViewer(session, Keys.for_map(map_id), rec, render_every_s)
     viewer.start()
