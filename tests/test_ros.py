@@ -42,6 +42,12 @@ def test_color_images_round_trip_through_cdr(encoding):
     assert np.array_equal(ros.image_color(msg), rgb)
 
 
+def test_mono_images_read_as_grey():
+    grey = (np.random.default_rng(2).random((4, 5, 1)) * 255).astype(np.uint8).repeat(3, -1)
+    msg = ros.deserialize(ros.serialize(ros.color_message(grey, 0, "cam", "mono8")), ros.IMAGE)
+    assert msg.step == 5 and np.array_equal(ros.image_color(msg), grey)
+
+
 @pytest.mark.parametrize("encoding,tol", [("16UC1", 0.0005), ("32FC1", 0.0)])
 def test_depth_images_round_trip_in_metres(encoding, tol):
     depth = np.random.default_rng(1).random((5, 4)).astype(np.float32) * 4

@@ -133,11 +133,14 @@ def image_depth(msg, depth_scale: float = 1000.0) -> np.ndarray:
 
 
 def color_message(rgb: np.ndarray, stamp: int, frame_id: str, encoding: str = "rgb8"):
+    """A ``sensor_msgs/Image`` of RGB uint8 (H, W, 3) in ``encoding`` (the inverse of :func:`image_color`)."""
     channels, order = _COLOR[encoding]
-    px = rgb[..., np.argsort(order)[:channels]] if channels == 3 else rgb
-    if channels == 4:
-        px = np.concatenate([rgb[..., [order.index(i) for i in range(3)]], np.full(rgb.shape[:2] + (1,), 255,
-                                                                                       np.uint8)], -1)
+    if channels == 1:
+        px = np.round(rgb.mean(-1, keepdims=True))
+    else:
+        px = rgb[..., [order.index(j) for j in range(3)]]  # message channel j holds RGB channel order.index(j)
+        if channels == 4:
+            px = np.concatenate([px, np.full(rgb.shape[:2] + (1,), 255, np.uint8)], -1)
     px = np.ascontiguousarray(px, np.uint8)
     h, w = rgb.shape[:2]
     return typestore().types[IMAGE](_header(stamp, frame_id), h, w, encoding, 0, w * channels, px.reshape(-1))
@@ -145,6 +148,7 @@ def color_message(rgb: np.ndarray, stamp: int, frame_id: str, encoding: str = "r
 
 def depth_message(depth_m: np.ndarray, stamp: int, frame_id: str, encoding: str = "16UC1",
                   depth_scale: float = 1000.0):
+    """A ``sensor_msgs/Image`` of depth in metres as ``16UC1`` (units of 1 / ``depth_scale`` m) or ``32FC1``."""
     h, w = depth_m.shape
     if encoding == "16UC1":
         px = np.clip(np.round(np.nan_to_num(depth_m) * depth_scale), 0, 65535).astype("<u2")
