@@ -1,4 +1,5 @@
-"""Input layer: RGB-D sequence readers behind one :class:`~h3edge.io.sequence.Sequence` interface."""
+"""Input layer: RGB-D sequence readers behind one :class:`~h3edge.io.sequence.Sequence` interface
+(Replica / own, TUM, ScanNet, rosbag2), the wire protocol, ROS 2 message conversion, the OAK source."""
 
 from __future__ import annotations
 

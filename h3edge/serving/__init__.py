@@ -1,2 +1,2 @@
-"""Serving: the map service (ingest, mapper thread, queries, checkpoints), its zenoh transport,
-the query client and the simulated publisher, systemd integration."""
+"""Serving: the map service (ingest, ROS 2 input, mapper thread, queries, checkpoints, live
+outputs), its zenoh transport, the query client and the publishers, systemd integration."""
