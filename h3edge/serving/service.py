@@ -439,15 +439,19 @@ class MapService:
         """Checkpoint now: the resume checkpoint, or ``<state>/<map>/maps/<name>.h3ckpt`` (which
         ``load`` reads back). At most one save per ``save_min_interval_s`` (QueryError otherwise)."""
         path = self.checkpoints.named_path(request.name) if request.name else None
+        self._admit_save("save")
+        return self._ask(self._save_requests, path)
+
+    def _admit_save(self, what: str) -> None:
+        """Count a save or load against ``save_min_interval_s``; QueryError when one came too soon."""
         now = time.monotonic()
+        gap = self.cfg.save_min_interval_s
         with self._req_lock:
             last = self._last_save_request
-            if last is not None and now - last < self.cfg.save_min_interval_s:
-                raise QueryError(f"save refused: the last one was asked {now - last:.1f} s ago; at most one per "
-                                 f"{self.cfg.save_min_interval_s:g} s (retry after "
-                                 f"{self.cfg.save_min_interval_s - (now - last):.1f} s)")
+            if last is not None and now - last < gap:
+                raise QueryError(f"{what} refused: the last save / load was asked {now - last:.1f} s ago; at most "
+                                 f"one per {gap:g} s (retry after {gap - (now - last):.1f} s)")
             self._last_save_request = now
-        return self._ask(self._save_requests, path)
 
     def load(self, request: NamedRequest) -> dict:
         """Replace the running map with a saved one (``name``: ``maps/<name>.h3ckpt``; none: the
@@ -456,13 +460,7 @@ class MapService:
         path = self.checkpoints.named_path(request.name) if request.name else self.checkpoints.path
         if not path.exists():
             raise QueryError(f"load: no saved map {path.name} under {path.parent}")
-        now = time.monotonic()
-        with self._req_lock:
-            last = self._last_save_request
-            if last is not None and now - last < self.cfg.save_min_interval_s:
-                raise QueryError(f"load refused: the last save / load was {now - last:.1f} s ago; at most one per "
-                                 f"{self.cfg.save_min_interval_s:g} s")
-            self._last_save_request = now
+        self._admit_save("load")
         return self._ask(self._load_requests, path)
 
     def export_mesh(self, request: NamedRequest) -> dict:
