@@ -29,7 +29,7 @@ from h3edge.config import apply_overrides, load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.raymarch import PriorLookup, first_crossing
+from h3edge.mapping.raymarch import PriorLookup
 
 log = logging.getLogger(__name__)
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes_redkitchen_dev"
@@ -42,6 +42,19 @@ def prior_coverage(voxels) -> dict:
     unset = ~voxels.prior_set[voxels.voxel_vertices]
     return {"vertices_set": float(voxels.prior_set.mean()), "voxels_all_unset": float(unset.all(1).mean()),
             "voxels_any_unset": float(unset.any(1).mean())}
+
+
+def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
+    """Per row of ``values`` (R, S) sampled at the evenly spaced ``ts`` (NaN where undefined), the
+    first + to - crossing by linear interpolation between the two samples around it; -1 where none."""
+    out = np.full(len(values), -1.0)
+    with np.errstate(invalid="ignore"):
+        cross = (values[:, :-1] > 0) & (values[:, 1:] <= 0)
+    rows = np.flatnonzero(cross.any(1))
+    k = cross[rows].argmax(1)
+    a0, a1 = values[rows, k], values[rows, k + 1]
+    out[rows] = ts[k] + (ts[1] - ts[0]) * a0 / (a0 - a1)
+    return out
 
 
 @torch.no_grad()

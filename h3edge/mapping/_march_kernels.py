@@ -85,6 +85,21 @@ def face(o, dirs, r, t_in, s_in, t_out, hkeys, hids, vs, vv, priors):
             a, t_in, s_in = mid, mid, s_mid
     return t_in, s_in
 
+@nb.njit(inline="always")
+def _box_clip(o, dirs, r, t0, t1, lo, hi):
+    """[t0, t1] of ray ``r`` clipped to the box [lo, hi] (metres); t0 > t1 when it misses."""
+    for a in range(3):
+        d = dirs[r, a]
+        if abs(d) < 1e-12:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return 1.0, 0.0
+            continue
+        ta, tb = (lo[a] - o[a]) / d, (hi[a] - o[a]) / d
+        if ta > tb:
+            ta, tb = tb, ta
+        t0, t1 = max(t0, ta), min(t1, tb)
+    return t0, t1
+
 @nb.njit(parallel=True, fastmath=False, cache=True)
 def march(o, dirs, nears, far, step, hkeys, hids, box_lo, box_hi, vs, vv, priors, exit_tol, out):
     # box_lo / box_hi: integer corners of the allocated voxels' bounding box (hi exclusive)
@@ -92,17 +107,7 @@ def march(o, dirs, nears, far, step, hkeys, hids, box_lo, box_hi, vs, vv, priors
     hi = (box_hi[0] * vs, box_hi[1] * vs, box_hi[2] * vs)
     for r in nb.prange(dirs.shape[0]):
         out[r] = -1.0
-        t0, t1 = nears[r], far
-        for a in range(3):
-            d = dirs[r, a]
-            if abs(d) < 1e-12:
-                if o[a] < lo[a] or o[a] > hi[a]:
-                    t0, t1 = 1.0, 0.0
-                continue
-            ta, tb = (lo[a] - o[a]) / d, (hi[a] - o[a]) / d
-            if ta > tb:
-                ta, tb = tb, ta
-            t0, t1 = max(t0, ta), min(t1, tb)
+        t0, t1 = _box_clip(o, dirs, r, nears[r], far, lo, hi)
         if t0 >= t1:
             continue
         prev = math.nan
@@ -167,3 +172,32 @@ def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
                                     min(max(pz - cz, 0.0), 1.0), vv, priors)
                     break
         vox[i], sdf[i] = v, s
+
+@nb.njit(parallel=True, cache=True)
+def allocated_samples(o, dirs, t_lo, t_hi, step, hkeys, hids, box_lo, box_hi, vs, vv, priors, offsets,
+                      ts, prior, fill):
+    """Samples every ``step`` along each ray from ``t_lo`` to ``t_hi`` that lie in allocated voxels.
+    With ``fill`` False: their count per ray into ``offsets[r + 1]``; with ``fill`` True (``offsets``
+    now the cumulative counts): their ray parameters and trilinear priors into ``ts`` / ``prior``
+    from ``offsets[r]`` on. The samples sit on one grid per ray, so two of them are neighbours when
+    their parameters differ by one step."""
+    lo = (box_lo[0] * vs, box_lo[1] * vs, box_lo[2] * vs)
+    hi = (box_hi[0] * vs, box_hi[1] * vs, box_hi[2] * vs)
+    for r in nb.prange(dirs.shape[0]):
+        t0, t1 = _box_clip(o, dirs, r, t_lo[r], t_hi[r], lo, hi)
+        # start on the ray's grid t_lo + k step, so clipping does not shift the samples
+        k = math.ceil((t0 - t_lo[r]) / step) if t0 > t_lo[r] else 0
+        c = offsets[r] if fill else 0
+        t = t_lo[r] + k * step
+        while t <= t1:
+            vid, s = trilinear((o[0] + dirs[r, 0] * t) / vs, (o[1] + dirs[r, 1] * t) / vs,
+                               (o[2] + dirs[r, 2] * t) / vs, hkeys, hids, vv, priors)
+            if vid >= 0:
+                if fill:
+                    ts[c] = t
+                    prior[c] = s
+                c += 1
+            k += 1
+            t = t_lo[r] + k * step
+        if not fill:
+            offsets[r + 1] = c

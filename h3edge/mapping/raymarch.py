@@ -10,6 +10,9 @@ Two stages per ray, both restricted to allocated leaf voxels:
    extrapolated to its crossing); a fused numba kernel over a
    hash table of the voxel ids (memory proportional to the voxels, wherever they are), parallel
    over rays;
+   then, in front of that crossing, the full SDF (prior + residual) at ``field_step`` through the
+   allocated voxels: its first crossing there wins, since the residual carries surfaces the
+   priors' 10 cm lattice cannot hold (thin edges, legs);
 2. fine: ``fine_samples`` samples ``fine_step`` apart centred on that crossing, full SDF (prior
    + residual) and the paper's volume rendering weights sigma(s/beta) sigma(-s/beta) give the
    depth; colour is the colour field at the rendered surface point. With the paper's kernel
@@ -48,11 +51,15 @@ class RenderConfig:
     # Windows with no surface in them (a prior crossing the residual moved away) march on instead
     # of rendering at their weighted mean depth.
     min_weight: float = 0.05
+    # in front of each ray's prior crossing the full SDF (prior + residual) is searched at this step
+    # through the allocated voxels: a surface the residual carries where the prior has no crossing
+    # (a table's edge in a voxel whose priors all read free) is rendered instead of stepped through
+    # to the floor behind it (0: prior crossings only)
+    field_step: float = 0.02
     # rays the prior march leaves without a weighted surface (the residual moved it where the prior
     # has no crossing) search the full SDF at this step through the allocated voxels they cross,
     # then render the window at its first crossing (0: off, such rays render empty)
     fallback_step: float = 0.01
-    fallback_chunk: int = 2048  # rays per fallback batch (x up to (far - near) / step samples)
     max_pixels: int = 1280 * 960  # render requests (queries, offline) above this are refused
 
 
@@ -60,6 +67,12 @@ def _march_kernel():
     from h3edge.mapping import _march_kernels as k
 
     return k.march, k.locate_prior
+
+
+def _samples_kernel():
+    from h3edge.mapping import _march_kernels as k
+
+    return k.allocated_samples
 
 
 def prior_crossings(origin: np.ndarray, dirs: np.ndarray, lookup: PriorLookup, cfg: RenderConfig,
@@ -136,58 +149,73 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
     lookup = PriorLookup(voxels)  # one voxel table and prior copy for every stage of this render
     t_hit = prior_crossings(origin, dirs, lookup, cfg)
     todo = np.flatnonzero(t_hit > 0)
+    if cfg.field_step > 0 and len(todo):
+        # the field's own first crossing in front of the prior's (the window covers the prior's)
+        t_field = field_crossings(neural_field, lookup, origin, dirs[todo], np.full(len(todo), cfg.near),
+                                  t_hit[todo] - _half_window(cfg), cfg.field_step, dev, cfg.chunk)
+        t_hit[todo] = np.where(t_field > 0, t_field, t_hit[todo])
     for attempt in range(cfg.retries + 1):
         missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color)
         if attempt == cfg.retries or len(missed) == 0:
             break
-        t_new = prior_crossings(origin, dirs[missed], lookup, cfg,
-                                near=t_hit[missed] + (cfg.fine_samples // 2 + 1) * cfg.fine_step)
+        t_new = prior_crossings(origin, dirs[missed], lookup, cfg, near=t_hit[missed] + _half_window(cfg))
         t_hit[missed] = t_new
         todo = missed[t_new > 0]
     if cfg.fallback_step > 0:
         # every ray still empty: no prior crossing at all, or none that carried weight
         empty = np.flatnonzero(depth == 0)
         if len(empty):
-            t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], cfg, dev)
+            t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], np.full(len(empty), cfg.near),
+                                           np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.chunk)
             found = empty[t_hit[empty] > 0]
             if len(found):
                 _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
     return color, depth
 
 
+def _half_window(cfg: RenderConfig) -> float:
+    """Ray-parameter distance from a fine window's centre to just past its last sample."""
+    return (cfg.fine_samples // 2 + 1) * cfg.fine_step
+
+
 @torch.no_grad()
-def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig, dev
-                    ) -> np.ndarray:
+def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, t_lo: np.ndarray,
+                    t_hi: np.ndarray, step: float, dev, chunk: int = 65536) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
-    ray, sampled every ``cfg.fallback_step`` through the allocated voxels between near and far; only
-    samples inside voxels are evaluated, and a crossing needs two consecutive ones."""
+    ray between ``t_lo`` and ``t_hi`` (per ray), sampled every ``step`` where the samples lie in
+    allocated voxels (only those are evaluated); a crossing lies between two neighbouring samples.
+    ``chunk`` rays are searched at a time."""
     out = np.full(len(dirs), -1.0)
-    ts = np.arange(cfg.near, cfg.far, cfg.fallback_step, dtype=np.float64)
+    if len(lookup.vv) == 0 or len(dirs) == 0:
+        return out
+    tab = lookup.table
     o = np.asarray(origin, np.float64)
-    for s in range(0, len(dirs), cfg.fallback_chunk):
-        d = dirs[s:s + cfg.fallback_chunk]
-        pts = (o[None, None, :] + d[:, None, :] * ts[None, :, None]).reshape(-1, 3)
-        prior, vox = lookup(pts)
-        inside = vox >= 0
-        if not inside.any():
+    kernel = _samples_kernel()
+    for s in range(0, len(dirs), chunk):
+        d = np.ascontiguousarray(dirs[s:s + chunk], np.float64)
+        lo = np.ascontiguousarray(t_lo[s:s + chunk], np.float64)
+        hi = np.ascontiguousarray(t_hi[s:s + chunk], np.float64)
+        offsets = np.zeros(len(d) + 1, np.int64)
+        empty = np.zeros(0, np.float64)
+        kernel(o, d, lo, hi, step, tab.hkeys, tab.hids, tab.box_lo, tab.box_hi, lookup.vs, lookup.vv, lookup.priors,
+               offsets, empty, empty, False)
+        np.cumsum(offsets, out=offsets)
+        if offsets[-1] == 0:
             continue
-        sdf = np.full(len(pts), np.nan)
-        p = torch.from_numpy(pts[inside].astype(np.float32)).to(dev)
-        sdf[inside] = prior[inside] + neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
-        out[s:s + len(d)] = first_crossing(sdf.reshape(len(d), len(ts)), ts)
-    return out
-
-
-def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
-    """Per row of ``values`` (R, S) sampled at the evenly spaced ``ts`` (NaN where undefined), the
-    first + to - crossing by linear interpolation between the two samples around it; -1 where none."""
-    out = np.full(len(values), -1.0)
-    with np.errstate(invalid="ignore"):
-        cross = (values[:, :-1] > 0) & (values[:, 1:] <= 0)
-    rows = np.flatnonzero(cross.any(1))
-    k = cross[rows].argmax(1)
-    a0, a1 = values[rows, k], values[rows, k + 1]
-    out[rows] = ts[k] + (ts[1] - ts[0]) * a0 / (a0 - a1)
+        ts, prior = np.empty(offsets[-1]), np.empty(offsets[-1])
+        kernel(o, d, lo, hi, step, tab.hkeys, tab.hids, tab.box_lo, tab.box_hi, lookup.vs, lookup.vv, lookup.priors,
+               offsets, ts, prior, True)
+        ray = np.repeat(np.arange(len(d)), np.diff(offsets))
+        pts = o[None, :] + d[ray] * ts[:, None]
+        sdf = prior.copy()
+        for a in range(0, len(pts), 1 << 18):  # bounded activations
+            p = torch.from_numpy(pts[a:a + (1 << 18)].astype(np.float32)).to(dev)
+            sdf[a:a + len(p)] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
+        cross = np.flatnonzero((ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)
+                               & (sdf[:-1] > 0) & (sdf[1:] <= 0))
+        rays, first = np.unique(ray[cross], return_index=True)
+        k = cross[first]
+        out[s + rays] = ts[k] + (ts[k + 1] - ts[k]) * sdf[k] / (sdf[k] - sdf[k + 1])
     return out
 
 
