@@ -9,6 +9,8 @@ views, for every valid pixel the render puts more than 5 cm in front of the sens
   the allocated voxels, and of the prior alone: does the *field* carry the phantom surface, or
   only the renderer's march?
 - whether the rendered point lies in a voxel whose 8 priors are all unset, or some of them;
+- for every valid pixel rendered > 5 cm behind the sensor depth or not at all ("blue"): whether the
+  full SDF's first crossing lies at the sensor depth (the renderer missed it) and the prior's behind;
 and the map's prior coverage (vertices with a prior, voxels with all / any corners unset). One ray
 that grazes an object edge is plotted: prior, residual, full SDF and the sensor depth along it.
 Writes OUT.json, OUT.md and OUT_ray.png (needs matplotlib: the ``bench`` extra).
@@ -95,6 +97,14 @@ def diagnose_view(m: Mapper, f, threshold: float = 0.05) -> dict:
     out = {"valid": int((gt > 0).sum()), "red": int(len(idx)), "behind_share": sh["behind_share"],
            "depth_l1_cm": 100 * depth_l1(depth, gt)[0], "median_cm": 100 * sh["median_abs_m"],
            "psnr_db": psnr(rgb, f.color), "ssim": ssim(rgb, f.color)}
+    # "blue": rendered > threshold behind the sensor depth, or not at all; is the surface in the field?
+    blue = np.flatnonzero(((gt > 0) & ((depth == 0) | (depth > gt + threshold))).reshape(-1))
+    if len(blue):
+        g = gt.reshape(-1)[blue]
+        full_t, prior_t = dense_crossings(m.field, m.voxels, o, d[blue], m.settings.render.near,
+                                          float(np.maximum(depth.reshape(-1)[blue], g).max()) + 0.2)
+        out.update({"behind_field_crossing_at_sensor": float(np.mean((full_t > 0) & (np.abs(full_t - g) <= threshold))),
+                    "behind_prior_crossing_behind": float(np.mean((prior_t > 0) & (prior_t > g + threshold)))})
     if len(idx) == 0:
         return out
     full_t, prior_t = dense_crossings(m.field, m.voxels, o, d[idx], m.settings.render.near,
@@ -204,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
              f"{100 * summary['behind_share']:.2f} % |",
              f"| held-out Depth L1 / median error [cm] | {summary['depth_l1_cm']:.2f} / {summary['median_cm']:.2f} |",
              f"| held-out PSNR [dB] / SSIM | {summary['psnr_db']:.2f} / {summary['ssim']:.3f} |"]
-    lines += [f"| of those: {k.replace('_', ' ')} | {summary[k]:.3f} |" for k in keys]
+    lines += [f"| of the {'behind / unrendered' if k.startswith('behind_') else 'in front'} pixels: "
+              f"{k.removeprefix('behind_').replace('_', ' ')} | {summary[k]:.3f} |" for k in keys]
     text = "\n".join(lines)
     out.with_suffix(".md").write_text(text + "\n")
     print(text)

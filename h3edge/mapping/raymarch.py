@@ -54,12 +54,14 @@ class RenderConfig:
     # in front of each ray's prior crossing the full SDF (prior + residual) is searched at this step
     # through the allocated voxels: a surface the residual carries where the prior has no crossing
     # (a table's edge in a voxel whose priors all read free) is rendered instead of stepped through
-    # to the floor behind it (0: prior crossings only)
-    field_step: float = 0.02
+    # to the floor behind it (0: prior crossings only). The paper's 1 cm: 2 cm steps miss thin
+    # negative shells (sim Depth L1 0.87 vs 0.78 cm on 6 views) for 25 % less render time
+    field_step: float = 0.01
     # rays the prior march leaves without a weighted surface (the residual moved it where the prior
     # has no crossing) search the full SDF at this step through the allocated voxels they cross,
     # then render the window at its first crossing (0: off, such rays render empty)
     fallback_step: float = 0.01
+    search_chunk: int = 8192  # rays per full-SDF search batch (x their allocated samples, ~300 at most indoors)
     max_pixels: int = 1280 * 960  # render requests (queries, offline) above this are refused
 
 
@@ -152,7 +154,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
     if cfg.field_step > 0 and len(todo):
         # the field's own first crossing in front of the prior's (the window covers the prior's)
         t_field = field_crossings(neural_field, lookup, origin, dirs[todo], np.full(len(todo), cfg.near),
-                                  t_hit[todo] - _half_window(cfg), cfg.field_step, dev, cfg.chunk)
+                                  t_hit[todo] - _half_window(cfg), cfg.field_step, dev, cfg.search_chunk)
         t_hit[todo] = np.where(t_field > 0, t_field, t_hit[todo])
     for attempt in range(cfg.retries + 1):
         missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color)
@@ -166,7 +168,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
         empty = np.flatnonzero(depth == 0)
         if len(empty):
             t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], np.full(len(empty), cfg.near),
-                                           np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.chunk)
+                                           np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.search_chunk)
             found = empty[t_hit[empty] > 0]
             if len(found):
                 _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
@@ -180,7 +182,7 @@ def _half_window(cfg: RenderConfig) -> float:
 
 @torch.no_grad()
 def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, t_lo: np.ndarray,
-                    t_hi: np.ndarray, step: float, dev, chunk: int = 65536) -> np.ndarray:
+                    t_hi: np.ndarray, step: float, dev, chunk: int = 8192) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
     ray between ``t_lo`` and ``t_hi`` (per ray), sampled every ``step`` where the samples lie in
     allocated voxels (only those are evaluated); a crossing lies between two neighbouring samples.
