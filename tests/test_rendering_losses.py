@@ -121,3 +121,15 @@ def test_surface_aware_rule_drops_negative_targets_past_second_sign_change():
     assert vanilla.item() == pytest.approx(float(e.mean()), rel=1e-5)
     assert aware.item() == pytest.approx(float(e[:4].mean()), rel=1e-5)  # samples 4..6 (t < 0) dropped
     assert math.isfinite(aware.item())
+
+
+def test_sdf_targets_end_where_the_band_behind_ends():
+    """Band samples deeper behind the measured depth than ``behind`` take no SDF target."""
+    d = torch.tensor([[1.98, 2.0, 2.01, 2.03, 2.05]])
+    gt = torch.tensor([2.0])
+    pred = torch.tensor([[0.4, 0.0, -0.2, 0.0, 0.0]])  # exact at the first three, wrong at 3 and 5 cm behind
+    mask = torch.ones_like(d, dtype=torch.bool)
+    _, deep = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=False)
+    _, short = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=False, behind=0.02 / TR)
+    assert deep.item() > 0
+    assert short.item() == pytest.approx(0.0, abs=1e-12)

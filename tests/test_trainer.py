@@ -1,5 +1,7 @@
 """A few optimisation steps on the tiny simulated scene reduce every loss and the depth error."""
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -19,6 +21,8 @@ def test_sample_depths_layout():
     assert (t.diff(dim=1) >= 0).all()  # sorted along each ray
     assert torch.allclose(t[0, b0:], 2.0 + 0.01 * torch.arange(-5, 6, dtype=torch.float32))
     assert (t[0, :b0] <= 1.95).all() and (t[:, :b0] >= 0.05).all()
+    short, _ = sample_depths(torch.tensor([2.0]), dataclasses.replace(cfg, band_behind=0.02), 0.05, 0.05)
+    assert torch.allclose(short[0, b0:], 2.0 + 0.01 * torch.arange(-5, 3, dtype=torch.float32))  # to 2 cm behind
 
 
 def test_training_reduces_losses(tiny_scene):

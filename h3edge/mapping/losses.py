@@ -90,7 +90,7 @@ def sdf_targets(sample_depth: torch.Tensor, gt_depth: torch.Tensor, truncation: 
 
 
 def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: torch.Tensor,
-                       mask: torch.Tensor, truncation: float, surface_aware: bool = True
+                       mask: torch.Tensor, truncation: float, surface_aware: bool = True, behind: float = 1.0
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """(L_fs, L_sdf) over rays with valid depth; sdf (R, S) in truncation units, depths in metres.
 
@@ -101,13 +101,15 @@ def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: 
     rendering and depth than the authors' settings do, and free-space carving would not count.
 
     Samples are in ray order and the valid ones (``mask``) form a prefix of each row, as the
-    sampler packs them, so a sign change is a change between neighbouring samples.
+    sampler packs them, so a sign change is a change between neighbouring samples. ``behind``
+    (truncation units, at most 1): how far behind the measured depth band samples take an SDF
+    target; deeper ones only carry the rendering losses.
     """
     valid_ray = gt_depth > 0
     target = sdf_targets(sample_depth, gt_depth, truncation)
     m = mask & valid_ray[:, None]
     fs = m & (target > 1.0)  # in front of the band: between the camera and D - truncation
-    tr = m & (target.abs() <= 1.0)
+    tr = m & (target.abs() <= 1.0) & (target >= -behind)
     if surface_aware:
         sgn = sdf.detach() >= 0
         change = (sgn[:, 1:] != sgn[:, :-1]) & m[:, 1:] & m[:, :-1]

@@ -2,7 +2,8 @@
 
 Training samples (per ray, z-depth units since ray directions have camera z = 1):
 - ``band_samples`` evenly spaced at ``step`` around the measured depth (the truncation band,
-  where the render weights live: colour and depth are rendered from these);
+  where the render weights live: colour and depth are rendered from these; those more than
+  ``band_behind`` behind it are left out, and those more than ``sdf_behind`` take no SDF target);
 - ``free_samples`` between ``near`` and depth - truncation (free-space loss): with
   ``free_in_voxels`` drawn among ``free_candidates`` stratified candidates that fall inside
   allocated leaf voxels (where the field exists and a phantom surface could be), otherwise
@@ -31,6 +32,12 @@ class TrainConfig:
     lr: float = 1e-2  # one Adam learning rate for everything (authors)
     step: float = 0.01  # m between band samples (the paper's 1 cm)
     band_samples: int = 11  # covers +-5 cm = the truncation band
+    # m behind the measured depth the band's samples reach (the paper: the truncation, a symmetric
+    # band); behind a thin object the negative targets of a deep band lie in free space
+    band_behind: float = 0.05
+    # m behind the measured depth band samples still take an SDF target (the paper: the truncation);
+    # deeper band samples only carry the colour and depth rendering losses
+    sdf_behind: float = 0.05
     free_samples: int = 8
     # free-space samples where the field lives, inside allocated voxels (as the paper's sampler):
     # measured no better than stratified samples on real Kinect data (docs/silhouettes.md), off
@@ -57,7 +64,8 @@ def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float, near
     :attr:`RenderConfig.near`); returns them and where the band starts."""
     r = len(depth)
     half = (cfg.band_samples - 1) / 2
-    band = depth[:, None] + cfg.step * (torch.arange(cfg.band_samples, dtype=depth.dtype, device=depth.device) - half)
+    offsets = cfg.step * (torch.arange(cfg.band_samples, dtype=depth.dtype, device=depth.device) - half)
+    band = depth[:, None] + offsets[offsets <= cfg.band_behind + 1e-6]
     far = (depth - truncation).clamp(min=near)
     u = (torch.arange(cfg.free_samples, device=depth.device, dtype=depth.dtype)
          + torch.rand(r, cfg.free_samples, generator=generator, device=depth.device, dtype=depth.dtype))
@@ -113,7 +121,7 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
     order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
     fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth, inside.gather(1, order),
-                                      tr, cfg.surface_aware)
+                                      tr, cfg.surface_aware, cfg.sdf_behind / tr)
     w = cfg.weights
     hit = out.hit
     l_rgb = rgb_l1(out.color[hit], rays.color[hit]) if hit.any() else sdf.sum() * 0
