@@ -1,4 +1,5 @@
-"""Fused numba kernels of the renderer's prior march (see :mod:`h3edge.mapping.raymarch`).
+"""Fused numba kernels of the renderer (see :mod:`h3edge.mapping.raymarch`): the prior march and the
+allocated-voxel samples of its full-SDF search.
 
 Module-level so numba's on-disk cache is reused across processes (a closure recompiled, ~10 s,
 in every process: the first render of a service would have paid it).
