@@ -143,8 +143,10 @@ class PriorLookup:
 @torch.no_grad()
 def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray whose
-    prior crossing gets no rendering weight (the residual moved the surface away from it) marches
+    """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray renders
+    at the full SDF's first crossing in front of its prior crossing where the search
+    (``cfg.field_step``) finds one, else at the prior crossing. A ray whose window
+    gets no rendering weight (the residual moved the surface away from it) marches
     on past that window, up to ``cfg.retries`` times."""
     dev = neural_field.geo_grid.table.device
     n = len(dirs)
