@@ -43,18 +43,23 @@ INTR = Intrinsics(320, 240, 280.0, 280.0, 160.0, 120.0)
 SLAT_X = np.arange(-0.30, 0.31, 0.06)  # 3 cm slats, 3 cm gaps
 
 
+def box(size, centre) -> trimesh.Trimesh:
+    return trimesh.creation.box(size, trimesh.transformations.translation_matrix(centre))
+
+
+def wall_and_floor() -> list[trimesh.Trimesh]:
+    """A wall at y = 2 m and the floor (the first 24 faces: lit light by :func:`frames`)."""
+    return [box((4.0, 0.05, 2.5), (0, 2.025, 1.25)), box((4.0, 4.0, 0.05), (0, 0.5, -0.025))]
+
+
 def slatted_scene(slats: bool = True) -> trimesh.Trimesh:
-    """A wall at y = 2 m, a floor, and 0.8 m in front of the wall either vertical slats (3 x 2 x 60 cm,
+    """The wall and floor, and 0.8 m in front of the wall either vertical slats (3 x 2 x 60 cm,
     3 cm apart) or one solid block of the same outline (63 x 20 x 60 cm)."""
-    parts = [trimesh.creation.box((4.0, 0.05, 2.5), trimesh.transformations.translation_matrix((0, 2.025, 1.25))),
-             trimesh.creation.box((4.0, 4.0, 0.05), trimesh.transformations.translation_matrix((0, 0.5, -0.025)))]
+    parts = wall_and_floor()
     if slats:
-        for x in SLAT_X:
-            parts.append(
-                trimesh.creation.box((0.03, 0.02, 0.6), trimesh.transformations.translation_matrix((x, 1.2, 0.9)))
-            )
+        parts += [box((0.03, 0.02, 0.6), (x, 1.2, 0.9)) for x in SLAT_X]
     else:
-        parts.append(trimesh.creation.box((0.63, 0.2, 0.6), trimesh.transformations.translation_matrix((0, 1.3, 0.9))))
+        parts.append(box((0.63, 0.2, 0.6), (0, 1.3, 0.9)))
     return trimesh.util.concatenate(parts)
 
 
@@ -115,10 +120,7 @@ def fixed(scene):
 def table_scene() -> trimesh.Trimesh:
     """The wall and floor, and a 4 cm thick table top (80 x 60 cm) 0.72 m above the floor, its edges
     on voxel faces: no prior lattice vertex lies inside it."""
-    return trimesh.util.concatenate([
-        trimesh.creation.box((4.0, 0.05, 2.5), trimesh.transformations.translation_matrix((0, 2.025, 1.25))),
-        trimesh.creation.box((4.0, 4.0, 0.05), trimesh.transformations.translation_matrix((0, 0.5, -0.025))),
-        trimesh.creation.box((0.8, 0.6, 0.04), trimesh.transformations.translation_matrix((0.0, 1.2, 0.74)))])
+    return trimesh.util.concatenate(wall_and_floor() + [box((0.8, 0.6, 0.04), (0.0, 1.2, 0.74))])
 
 
 @pytest.fixture(scope="module")
