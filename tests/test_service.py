@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+import zenoh
 
 from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.eval.evaluate import EvalConfig, evaluate_geometry
@@ -154,8 +155,9 @@ def test_malformed_messages_are_counted_and_dropped(served):
     """Truncated, wrong sizes, NaN / non-rigid poses, stale and duplicate timestamps, unknown
     fields: each is counted under its reason, nothing crashes, and a good frame still maps."""
     svc, session, seq, _, before, _ = served
-    pub_f = session.declare_publisher(KEYS.frame)
-    pub_p = session.declare_publisher(KEYS.pose)
+    block = zenoh.CongestionControl.BLOCK  # the default (DROP) may shed a message on a loaded host
+    pub_f = session.declare_publisher(KEYS.frame, congestion_control=block)
+    pub_p = session.declare_publisher(KEYS.pose, congestion_control=block)
     now = time.time_ns()
     good = encode_frame(_frame(seq, 3, now))
     bad = [good[:len(good) // 2],  # truncated

@@ -379,7 +379,10 @@ def publish_ros_sequence(session: zenoh.Session, seq, cfg, rate: float = 30.0, p
     from h3edge.io import ros
 
     keys = {role: key.replace("/*", "/RIHS01_h3edge") for role, key in cfg.keys().items()}
-    pubs = {role: session.declare_publisher(key) for role, key in keys.items()}
+    # BLOCK, as publish_sequence: on a loaded host zenoh's default (DROP) sheds whole images
+    # when the transmit queue is full, and a simulated robot should deliver what it counts as sent.
+    pubs = {role: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for role, key in keys.items()}
     inv = invert_pose(ros.extrinsic_matrix(cfg.base_to_camera or "identity"))
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     bases = [seq.poses[i] @ inv for i in idx]
