@@ -36,6 +36,7 @@ from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.raymarch import RenderConfig
+from h3edge.mapping.trainer import TrainConfig
 from h3edge.mapping.voxels import VoxelConfig
 from h3edge.sim.sensor import SensorModel, degrade_depth
 
@@ -191,6 +192,93 @@ def test_renderer_finds_the_surface_the_residual_carries():
     assert searched < 0.75 * prior_only, (searched, prior_only)
 
 
+def board_views(n: int) -> tuple[trimesh.Trimesh, list[Frame]]:
+    """A 2 cm thick board (40 x 60 cm) 1 m in front of the wall, and ``n`` noise-free views on an
+    arc from 60 degrees left of it to 60 degrees right, 1 m away."""
+    mesh = trimesh.util.concatenate(wall_and_floor() + [box((0.4, 0.02, 0.6), (0.05, 1.01, 0.9))])
+    caster = MeshRaycaster(mesh.vertices, mesh.faces)
+    out = []
+    for i in range(n):
+        a = np.deg2rad(-60 + 120 * i / (n - 1))
+        pose = look_at(np.array([0.05 + np.sin(a), 1.0 - np.cos(a), 1.0]), np.array([0.05, 1.0, 0.9]))
+        hits = caster.hits(INTR, pose)
+        color = np.repeat(np.where(hits.prim[..., None] < 24, 200, 90).astype(np.uint8), 3, -1)
+        out.append(Frame(i, i / 30, color, hits.depth.astype(np.float32), pose, INTR))
+    return mesh, out
+
+
+def sdf_at(m: Mapper, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(full SDF, voxel id) at points (no grad)."""
+    import torch
+
+    from h3edge.mapping.raymarch import PriorLookup
+
+    prior, vox = PriorLookup(m.voxels)(pts)
+    with torch.no_grad():
+        res = m.field.sdf_mlp(m.field.geo_grid(torch.from_numpy(pts.astype(np.float32))))[:, 0].numpy()
+    return prior + res, vox
+
+
+def test_space_another_view_saw_through_stays_free():
+    """Behind and beside a thin board: points that some training view saw through (its depth more
+    than 1 cm beyond them) must not read as inside. Priors set once from the first view that sees a
+    vertex put -1 down to init_range behind the board's face (measured: 53 % of those points read
+    inside); fused per vertex, with occluded vertices inside only until a view sees past them, they
+    do not (19 %), and the board itself keeps its inside (holes 15 % -> 14 %)."""
+    import torch
+
+    from h3edge.mapping.visibility import PooledDepth, seen_through
+
+    _, train = board_views(16)
+    g = np.stack(np.meshgrid(np.linspace(-0.25, 0.35, 31), np.linspace(1.0, 1.12, 7), np.linspace(0.65, 1.15, 13)),
+                 -1).reshape(-1, 3)
+    board = (np.abs(g[:, 0] - 0.05) <= 0.2) & (g[:, 1] <= 1.02) & (np.abs(g[:, 2] - 0.9) <= 0.3)
+    free = seen_through(torch.from_numpy(g), [PooledDepth.of(f.depth, f.pose, f.intrinsics, 1) for f in train],
+                        0.01).numpy() & ~board
+    core = board & (np.abs(g[:, 0] - 0.05) <= 0.17) & (np.abs(g[:, 2] - 0.9) <= 0.27)
+
+    def shares(settings) -> tuple[float, float]:
+        m = mapped(train, settings)
+        f, vox = sdf_at(m, g[free])
+        b, _ = sdf_at(m, g[core])
+        return float(np.mean(f[vox >= 0] < 0)), float(np.mean(b > 0))
+
+    once = dataclasses.replace(SETTINGS, voxels=dataclasses.replace(SETTINGS.voxels, prior_fusion_frames=0))
+    fused = dataclasses.replace(SETTINGS, voxels=dataclasses.replace(
+        SETTINGS.voxels, prior_fusion_frames=5, fusion_behind=0.05, fusion_occluded_inside=True))
+    (phantom_once, holes_once), (phantom, holes) = shares(once), shares(fused)
+    assert phantom_once > 0.4 and phantom < 0.6 * phantom_once, (phantom_once, phantom)
+    assert holes < holes_once + 0.03, (holes_once, holes)
+
+
+def test_band_targets_behind_a_thin_board_give_way_to_other_views():
+    """With the priors fused (so that the residual's own targets decide), the band samples behind
+    the board's face that another view of the batch saw through take no negative target
+    (``train.carve_behind``): fewer of the points some view saw through read inside (measured at
+    6 iterations a frame: 27 % without, 20 % with)."""
+    import torch
+
+    from h3edge.mapping.visibility import PooledDepth, seen_through
+
+    _, train = board_views(16)
+    g = np.stack(np.meshgrid(np.linspace(-0.25, 0.35, 31), np.linspace(1.0, 1.12, 7), np.linspace(0.65, 1.15, 13)),
+                 -1).reshape(-1, 3)
+    board = (np.abs(g[:, 0] - 0.05) <= 0.2) & (g[:, 1] <= 1.02) & (np.abs(g[:, 2] - 0.9) <= 0.3)
+    free = seen_through(torch.from_numpy(g), [PooledDepth.of(f.depth, f.pose, f.intrinsics, 1) for f in train],
+                        0.01).numpy() & ~board
+    base = dataclasses.replace(SETTINGS, mapper=dataclasses.replace(SETTINGS.mapper, iterations=6),
+                               voxels=dataclasses.replace(SETTINGS.voxels, prior_fusion_frames=5, fusion_behind=0.05,
+                                                          fusion_occluded_inside=True))
+
+    def phantom(carve: bool) -> float:
+        m = mapped(train, dataclasses.replace(base, train=dataclasses.replace(base.train, carve_behind=carve)))
+        f, vox = sdf_at(m, g[free])
+        return float(np.mean(f[vox >= 0] < 0))
+
+    without, carved = phantom(False), phantom(True)
+    assert carved < 0.85 * without, (without, carved)
+
+
 def test_mesh_leaves_out_unobserved_cubes(block):
     """Fewer mesh samples far (> 5 cm) from the true surface with the support rule, little lost."""
     from h3edge.eval.metrics import mesh_to_mesh
@@ -218,3 +306,4 @@ def test_slat_gaps_are_seen_through(scene, fixed):
 def test_defaults_are_the_fixed_ones():
     assert RenderConfig().min_weight >= 0.01 and RenderConfig().fallback_step > 0 and RenderConfig().field_step > 0
     assert VoxelConfig().prior_retry and VoxelConfig().prior_clamp > 0
+    assert TrainConfig().carve_behind

@@ -54,7 +54,10 @@ def test_keyframes_keep_a_pixel_subset(half_mapped):
     _, m = half_mapped
     kf = m.keyframes.keyframes[-1].payload
     assert len(kf.pix) == 2000 and len(np.unique(kf.pix)) == 2000
-    assert kf.nbytes < 2000 * 12 + 200
+    # and the depth image pooled to 4 x 4 blocks, for the cross-view free-space test (train.carve_behind)
+    h, w = kf.intrinsics.height // 4, kf.intrinsics.width // 4
+    assert kf.pooled is not None and kf.pooled.depth.shape == (h, w)
+    assert kf.nbytes < 2000 * 12 + 200 + 4 * h * w
 
 
 def test_restored_mapper_continues_identically(half_mapped):
@@ -69,6 +72,9 @@ def test_restored_mapper_continues_identically(half_mapped):
         assert torch.equal(a[k], b[k]), k
     assert r.frames_mapped == m.frames_mapped and len(r.voxels) == len(m.voxels)
     assert [k.frame_id for k in r.keyframes.keyframes] == [k.frame_id for k in m.keyframes.keyframes]
+    for a_kf, b_kf in zip(m.keyframes.keyframes, r.keyframes.keyframes):
+        assert np.array_equal(a_kf.payload.pooled.depth, b_kf.payload.pooled.depth)
+        assert a_kf.payload.pooled.stride == b_kf.payload.pooled.stride
     # continue mapping from the restored state and from the original: the same map (the parallel
     # gradient scatter sums in a nondeterministic order, so "the same" is up to rounding noise)
     cont = _clone(m)

@@ -22,6 +22,7 @@ import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
+from h3edge.mapping.visibility import PooledDepth
 
 
 @dataclass
@@ -34,6 +35,7 @@ class StoredFrame:
     depth: np.ndarray  # float32 (n,) cleaned depth at those pixels
     pose: np.ndarray
     intrinsics: Intrinsics
+    pooled: PooledDepth | None = None  # the whole depth image, pooled (``train.carve_behind``)
 
     def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pixel indices, colours, depths) of the ``j``-th kept pixels."""
@@ -41,7 +43,8 @@ class StoredFrame:
 
     @property
     def nbytes(self) -> int:
-        return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16
+        pooled = self.pooled.nbytes if self.pooled is not None else 0
+        return self.pix.nbytes + self.rgb.nbytes + self.depth.nbytes + 8 * 16 + pooled
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:
@@ -87,7 +90,9 @@ class KeyframeSet:
         offsets), the selection round's observed voxels and the policy's counters."""
         kfs = self.keyframes
         meta = {"keyframes": [{"frame_id": k.frame_id, "selected": k.selected_this_round,
-                               "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist()}
+                               "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist(),
+                               "pooled": None if k.payload.pooled is None else
+                               [k.payload.pooled.stride, *k.payload.pooled.depth.shape]}
                               for k in kfs],
                 "keyframe_policy": {"frames_since_insert": self.frames_since_insert, "pruned": self.pruned}}
         arrays: dict[str, np.ndarray] = {}
@@ -95,7 +100,9 @@ class KeyframeSet:
                                  ("scores", lambda k: k.scores, np.float64, ()),
                                  ("pix", lambda k: k.payload.pix, np.int32, ()),
                                  ("rgb", lambda k: k.payload.rgb, np.uint8, (3,)),
-                                 ("depth", lambda k: k.payload.depth, np.float32, ())):
+                                 ("depth", lambda k: k.payload.depth, np.float32, ()),
+                                 ("pooled", lambda k: np.zeros(0, np.float32) if k.payload.pooled is None
+                                  else k.payload.pooled.depth.reshape(-1), np.float32, ())):
             parts = [get(k) for k in kfs]
             arrays[f"{name}_offsets"] = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
             arrays[name] = np.concatenate(parts).astype(dt) if parts else np.zeros((0, *w), dt)
@@ -107,11 +114,20 @@ class KeyframeSet:
             data, off = arrays[name], arrays[f"{name}_offsets"]
             return [data[off[i]:off[i + 1]] for i in range(len(off) - 1)]
 
-        parts = {n: split(n) for n in ("voxels", "scores", "pix", "rgb", "depth")}
+        names = ("voxels", "scores", "pix", "rgb", "depth") + (("pooled",) if "pooled" in arrays else ())
+        parts = {n: split(n) for n in names}
+
+        def pooled(i: int, km: dict) -> PooledDepth | None:
+            if km.get("pooled") is None or "pooled" not in parts:
+                return None
+            stride, h, w = km["pooled"]
+            return PooledDepth(parts["pooled"][i].reshape(h, w), np.asarray(km["pose"], np.float64),
+                               Intrinsics(**km["intrinsics"]), int(stride))
+
         self.keyframes = [
             Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i],
                      StoredFrame(parts["pix"][i], parts["rgb"][i], parts["depth"][i],
-                                 np.asarray(km["pose"], np.float64), Intrinsics(**km["intrinsics"])),
+                                 np.asarray(km["pose"], np.float64), Intrinsics(**km["intrinsics"]), pooled(i, km)),
                      km["selected"])
             for i, km in enumerate(meta["keyframes"])]
         self.observed = arrays["observed"].astype(bool)

@@ -30,6 +30,7 @@ import torch
 import trimesh
 
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
+from h3edge.geometry.depth_edges import near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
@@ -42,6 +43,7 @@ from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.trainer import RayBatch, TrainConfig, train_step
 from h3edge.mapping.view import MapView
+from h3edge.mapping.visibility import PooledDepth
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, pack, unpack
 from h3edge.profiling.timing import Timings
 
@@ -64,6 +66,11 @@ class MapperConfig:
     min_depth: float = 0.01  # m, valid depth range (authors: (0.01, 10))
     max_depth: float = 10.0
     min_valid_fraction: float = 0.01  # frames with less valid depth are dropped
+    # depth pixels dropped on the near side of depth edges: those with a neighbour within
+    # edge_radius pixels farther by more than edge_jump of their depth (flying and
+    # foreground-fattened pixels, :mod:`h3edge.geometry.depth_edges`; 0: keep every pixel)
+    edge_radius: int = 0
+    edge_jump: float = 0.05
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
     # mesh only cubes whose 8 lattice points each have at least this share of their trilinear
@@ -115,13 +122,17 @@ class ImageFrame:
         p = self.pix[j]
         return p, self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p]
 
-    def subset(self, n: int, rng: np.random.Generator) -> StoredFrame:
-        """A keyframe's store: at most ``n`` of the valid pixels, drawn without replacement (0: all)."""
+    def subset(self, n: int, rng: np.random.Generator, pool_stride: int = 0) -> StoredFrame:
+        """A keyframe's store: at most ``n`` of the valid pixels, drawn without replacement (0: all),
+        and with ``pool_stride`` > 0 the depth image pooled to that block size."""
         p = self.pix
         if 0 < n < len(p):
             p = p[np.sort(rng.choice(len(p), n, replace=False))]
         return StoredFrame(p.copy(), self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p], self.pose,
-                           self.intrinsics)
+                           self.intrinsics, self.pooled(pool_stride) if pool_stride > 0 else None)
+
+    def pooled(self, stride: int) -> PooledDepth:
+        return PooledDepth.of(self.depth, self.pose, self.intrinsics, stride)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -211,7 +222,10 @@ class Mapper:
     def clean_depth(self, depth: np.ndarray) -> np.ndarray:
         d = np.asarray(depth, np.float32)
         ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
-        return np.where(ok, d, np.float32(0))
+        d = np.where(ok, d, np.float32(0))
+        if self.cfg.edge_radius > 0:
+            d[near_side_of_edges(d, self.cfg.edge_radius, self.cfg.edge_jump)] = 0
+        return d
 
     def _drop(self, frame: Frame, code: str, reason: str) -> FrameResult:
         self.dropped[code] = self.dropped.get(code, 0) + 1
@@ -294,7 +308,8 @@ class Mapper:
                 grad = color_gradient(current.color, current.depth, self.settings.texture.depth_jump)
             scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
         self.keyframes.insert(frame_id, observed, scores,
-                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
+                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng,
+                                                     self._pool_stride()))
         return True
 
     def train_between_frames(self) -> dict | None:
@@ -326,10 +341,18 @@ class Mapper:
             self.field.texture.set_warps(unpack(self.voxels.voxel_keys), self.settings.voxels.voxel_size,
                                          classes, self.patterns.dirs, self.patterns.n_dirs)
 
+    def _pool_stride(self) -> int:
+        """Block size of the pooled depth the frames keep for ``train.carve_behind`` (0: none)."""
+        return self.train_cfg.carve_stride if self.train_cfg.carve_behind else 0
+
     def _sample_rays(self, frames: list[ImageFrame | StoredFrame]) -> RayBatch:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
-        o, d, z, c = [], [], [], []
+        o, d, z, c, views = [], [], [], [], []
+        stride = self._pool_stride()
         for f in frames:
+            if stride:
+                pooled = f.pooled(stride) if isinstance(f, ImageFrame) else f.pooled
+                views += [pooled] if pooled is not None else []
             pix, rgb, depth = f.sample(self.rng.integers(0, len(f.pix), n_each))
             cam = self._camera_rays(f.intrinsics)[pix]
             d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
@@ -338,7 +361,7 @@ class Mapper:
             c.append(rgb)
         dev = self.device
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731
-        return RayBatch(t(o), t(d), t(z), t(c) / 255.0)
+        return RayBatch(t(o), t(d), t(z), t(c) / 255.0, views)
 
     # ---------------------------------------------------------------- queries
     def view(self) -> MapView:

@@ -13,6 +13,10 @@ budget (1 cm steps through every voxel the ray crosses) where the losses act. Dr
 range, most free-space samples miss every voxel (6 % land in one on the tiny simulated scene,
 48 % with ``free_in_voxels``), yet on real Kinect data the in-voxel draw measured no better, so it
 is off by default. The full-ray sampling is what novel-view rendering uses.
+
+Band samples behind the measured depth take a negative SDF target, except (``carve_behind``) where
+another view of the batch measured a depth more than ``carve_margin`` beyond them
+(:mod:`h3edge.mapping.visibility`): behind a thin object those targets would fill free space.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import torch
 
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
+from h3edge.mapping.visibility import PooledDepth, seen_through
 from h3edge.mapping.volume_rendering import color_samples, composite
 from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
@@ -47,6 +52,14 @@ class TrainConfig:
     # band sample, the paper's); the skipped samples carry < floor of a ray's colour each
     color_weight_floor: float = 1e-3
     surface_aware: bool = True
+    # band samples behind the measured depth take no SDF target where another view of the batch
+    # (its keyframes and the current frame) measured more than carve_margin beyond them: behind a
+    # thin object the negative targets would fill the free space other views saw. A departure from
+    # the paper (false), measured on real Kinect data: pixels rendered > 5 cm in front 4.9 -> 3.8 %,
+    # Depth L1 -10 % (docs/silhouettes.md)
+    carve_behind: bool = True
+    carve_margin: float = 0.03  # m: depth noise and pose error a view must see past
+    carve_stride: int = 4  # pixels per side of the pooled depth blocks a view keeps for the test
     weights: LossWeights = field(default_factory=LossWeights)
 
 
@@ -56,6 +69,7 @@ class RayBatch:
     dirs: torch.Tensor  # (R, 3) world directions with camera z = 1
     depth: torch.Tensor  # (R,) measured z-depth, 0 = invalid
     color: torch.Tensor  # (R, 3) in [0, 1]
+    views: list[PooledDepth] = field(default_factory=list)  # the frames the rays came from (carve_behind)
 
 
 def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float, near: float,
@@ -118,10 +132,17 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
         0, band_in, neural_field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
     out = composite(sdf[:, b0:], t[:, b0:], col, neural_field.cfg.beta, inside[:, b0:], color_mask=need)
+    sdf_mask, carved = inside, 0.0
+    if cfg.carve_behind and rays.views:
+        behind = inside & (t > rays.depth[:, None])
+        free = seen_through(pts[behind].detach(), rays.views, cfg.carve_margin)
+        sdf_mask = inside.clone()
+        sdf_mask[behind] = ~free
+        carved = float(free.float().mean()) if len(free) else 0.0
     # pack valid samples to the front of each row (order kept) for the surface-aware rule
-    order = torch.sort((~inside).to(torch.int8), dim=1, stable=True).indices
-    fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth, inside.gather(1, order),
-                                      tr, cfg.surface_aware, cfg.sdf_behind / tr)
+    order = torch.sort((~sdf_mask).to(torch.int8), dim=1, stable=True).indices
+    fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth,
+                                      sdf_mask.gather(1, order), tr, cfg.surface_aware, cfg.sdf_behind / tr)
     w = cfg.weights
     hit = out.hit
     l_rgb = rgb_l1(out.color[hit], rays.color[hit]) if hit.any() else sdf.sum() * 0
@@ -137,4 +158,5 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
         prior_opt.step(voxels)
     neural_field.sparse_step(cfg.lr)
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
-            "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean())}
+            "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean()),
+            "carved": carved}

@@ -119,6 +119,10 @@ class VoxelConfig:
     # the band (per vertex, as TSDF fusion; training refines it in between)
     prior_fusion_frames: int = 0
     fusion_behind: float = 0.245  # m behind the measured surface a vertex still takes a fused value
+    # with fusion: a vertex never fused yet that a frame sees farther than fusion_behind behind the
+    # surface reads -prior_clamp (occluded: inside until shown otherwise), and the first frame that
+    # sees it in the band or in free space replaces that value (it counts as no observation)
+    fusion_occluded_inside: bool = False
 
 
 
@@ -262,6 +266,11 @@ class VoxelMap:
         sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
         with np.errstate(invalid="ignore"):
             band = (sdf > -self.cfg.fusion_behind) & ((sdf < self.cfg.init_range) | (self.cfg.prior_clamp > 0))
+            occluded = valid & (sdf <= -self.cfg.fusion_behind)
+        if self.cfg.fusion_occluded_inside:
+            hidden = vid[occluded & (self.prior_obs[vid] == 0)]
+            if len(hidden):
+                self.priors.data[torch.from_numpy(hidden).to(self.device)] = -float(self.cfg.prior_clamp or 1.0)
         ok = valid & band
         t = vid[ok]
         if len(t) == 0:

@@ -47,4 +47,6 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
 
 def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
     n = settings.keyframes.stored_pixels or frame_pixels
-    return n * (4 + 3 + 4) + 4096  # pixel index, RGB, depth; voxel ids and scores
+    t = settings.train
+    pooled = 4 * frame_pixels // t.carve_stride ** 2 if t.carve_behind else 0  # carve_behind's pooled depth
+    return n * (4 + 3 + 4) + 4096 + pooled  # pixel index, RGB, depth; voxel ids and scores
