@@ -207,6 +207,22 @@ def board_views(n: int) -> tuple[trimesh.Trimesh, list[Frame]]:
     return mesh, out
 
 
+def board_probes(train: list[Frame]) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a 2 cm grid behind and beside the board of :func:`board_views`: those outside the
+    board that some view of ``train`` saw more than 1 cm past, and those well inside the board."""
+    import torch
+
+    from h3edge.mapping.visibility import PooledDepth, seen_through
+
+    g = np.stack(np.meshgrid(np.linspace(-0.25, 0.35, 31), np.linspace(1.0, 1.12, 7), np.linspace(0.65, 1.15, 13)),
+                 -1).reshape(-1, 3)
+    board = (np.abs(g[:, 0] - 0.05) <= 0.2) & (g[:, 1] <= 1.02) & (np.abs(g[:, 2] - 0.9) <= 0.3)
+    free = seen_through(torch.from_numpy(g), [PooledDepth.of(f.depth, f.pose, f.intrinsics, 1) for f in train],
+                        0.01).numpy() & ~board
+    core = board & (np.abs(g[:, 0] - 0.05) <= 0.17) & (np.abs(g[:, 2] - 0.9) <= 0.27)
+    return g[free], g[core]
+
+
 def sdf_at(m: Mapper, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(full SDF, voxel id) at points (no grad)."""
     import torch
@@ -225,22 +241,13 @@ def test_space_another_view_saw_through_stays_free():
     vertex put -1 down to init_range behind the board's face (measured: 53 % of those points read
     inside); fused per vertex, with occluded vertices inside only until a view sees past them, they
     do not (19 %), and the board itself keeps its inside (holes 15 % -> 14 %)."""
-    import torch
-
-    from h3edge.mapping.visibility import PooledDepth, seen_through
-
     _, train = board_views(16)
-    g = np.stack(np.meshgrid(np.linspace(-0.25, 0.35, 31), np.linspace(1.0, 1.12, 7), np.linspace(0.65, 1.15, 13)),
-                 -1).reshape(-1, 3)
-    board = (np.abs(g[:, 0] - 0.05) <= 0.2) & (g[:, 1] <= 1.02) & (np.abs(g[:, 2] - 0.9) <= 0.3)
-    free = seen_through(torch.from_numpy(g), [PooledDepth.of(f.depth, f.pose, f.intrinsics, 1) for f in train],
-                        0.01).numpy() & ~board
-    core = board & (np.abs(g[:, 0] - 0.05) <= 0.17) & (np.abs(g[:, 2] - 0.9) <= 0.27)
+    seen_free, core = board_probes(train)
 
     def shares(settings) -> tuple[float, float]:
         m = mapped(train, settings)
-        f, vox = sdf_at(m, g[free])
-        b, _ = sdf_at(m, g[core])
+        f, vox = sdf_at(m, seen_free)
+        b, _ = sdf_at(m, core)
         return float(np.mean(f[vox >= 0] < 0)), float(np.mean(b > 0))
 
     once = dataclasses.replace(SETTINGS, voxels=dataclasses.replace(SETTINGS.voxels, prior_fusion_frames=0))
@@ -256,23 +263,15 @@ def test_band_targets_behind_a_thin_board_give_way_to_other_views():
     the board's face that another view of the batch saw through take no negative target
     (``train.carve_behind``): fewer of the points some view saw through read inside (measured at
     6 iterations a frame: 27 % without, 20 % with)."""
-    import torch
-
-    from h3edge.mapping.visibility import PooledDepth, seen_through
-
     _, train = board_views(16)
-    g = np.stack(np.meshgrid(np.linspace(-0.25, 0.35, 31), np.linspace(1.0, 1.12, 7), np.linspace(0.65, 1.15, 13)),
-                 -1).reshape(-1, 3)
-    board = (np.abs(g[:, 0] - 0.05) <= 0.2) & (g[:, 1] <= 1.02) & (np.abs(g[:, 2] - 0.9) <= 0.3)
-    free = seen_through(torch.from_numpy(g), [PooledDepth.of(f.depth, f.pose, f.intrinsics, 1) for f in train],
-                        0.01).numpy() & ~board
+    seen_free, _ = board_probes(train)
     base = dataclasses.replace(SETTINGS, mapper=dataclasses.replace(SETTINGS.mapper, iterations=6),
                                voxels=dataclasses.replace(SETTINGS.voxels, prior_fusion_frames=5, fusion_behind=0.05,
                                                           fusion_occluded_inside=True))
 
     def phantom(carve: bool) -> float:
         m = mapped(train, dataclasses.replace(base, train=dataclasses.replace(base.train, carve_behind=carve)))
-        f, vox = sdf_at(m, g[free])
+        f, vox = sdf_at(m, seen_free)
         return float(np.mean(f[vox >= 0] < 0))
 
     without, carved = phantom(False), phantom(True)
