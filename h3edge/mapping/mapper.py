@@ -117,22 +117,20 @@ class ImageFrame:
     pose: np.ndarray
     intrinsics: Intrinsics
     pix: np.ndarray  # int32 flat indices of the valid-depth pixels
+    pooled: PooledDepth | None = None  # the depth pooled for ``train.carve_behind``, once per frame
 
     def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p = self.pix[j]
         return p, self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p]
 
-    def subset(self, n: int, rng: np.random.Generator, pool_stride: int = 0) -> StoredFrame:
+    def subset(self, n: int, rng: np.random.Generator) -> StoredFrame:
         """A keyframe's store: at most ``n`` of the valid pixels, drawn without replacement (0: all),
-        and with ``pool_stride`` > 0 the depth image pooled to that block size."""
+        and the pooled depth."""
         p = self.pix
         if 0 < n < len(p):
             p = p[np.sort(rng.choice(len(p), n, replace=False))]
         return StoredFrame(p.copy(), self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p], self.pose,
-                           self.intrinsics, self.pooled(pool_stride) if pool_stride > 0 else None)
-
-    def pooled(self, stride: int) -> PooledDepth:
-        return PooledDepth.of(self.depth, self.pose, self.intrinsics, stride)
+                           self.intrinsics, self.pooled)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -274,7 +272,10 @@ class Mapper:
         depth = self.clean_depth(frame.depth)
         pose = np.asarray(frame.pose, np.float64)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
-        return ImageFrame(frame.color, depth, pose, frame.intrinsics, valid), backproject(depth, frame.intrinsics, pose)
+        t = self.train_cfg
+        pooled = PooledDepth.of(depth, pose, frame.intrinsics, t.carve_stride) if t.carve_behind else None
+        return (ImageFrame(frame.color, depth, pose, frame.intrinsics, valid, pooled),
+                backproject(depth, frame.intrinsics, pose))
 
     def _place_field(self, centre: np.ndarray) -> None:
         self.bound = np.stack([centre - self.cfg.extent / 2, centre + self.cfg.extent / 2])
@@ -308,8 +309,7 @@ class Mapper:
                 grad = color_gradient(current.color, current.depth, self.settings.texture.depth_jump)
             scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
         self.keyframes.insert(frame_id, observed, scores,
-                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng,
-                                                     self._pool_stride()))
+                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
         return True
 
     def train_between_frames(self) -> dict | None:
@@ -341,18 +341,11 @@ class Mapper:
             self.field.texture.set_warps(unpack(self.voxels.voxel_keys), self.settings.voxels.voxel_size,
                                          classes, self.patterns.dirs, self.patterns.n_dirs)
 
-    def _pool_stride(self) -> int:
-        """Block size of the pooled depth the frames keep for ``train.carve_behind`` (0: none)."""
-        return self.train_cfg.carve_stride if self.train_cfg.carve_behind else 0
-
     def _sample_rays(self, frames: list[ImageFrame | StoredFrame]) -> RayBatch:
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
-        o, d, z, c, views = [], [], [], [], []
-        stride = self._pool_stride()
+        o, d, z, c = [], [], [], []
+        views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            if stride:
-                pooled = f.pooled(stride) if isinstance(f, ImageFrame) else f.pooled
-                views += [pooled] if pooled is not None else []
             pix, rgb, depth = f.sample(self.rng.integers(0, len(f.pix), n_each))
             cam = self._camera_rays(f.intrinsics)[pix]
             d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
