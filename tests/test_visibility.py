@@ -17,6 +17,9 @@ def test_pooled_blocks_keep_their_nearest_depth_and_know_nothing_with_a_hole():
     assert p.shape == (2, 2) and p.dtype == np.float32
     assert p[0, 0] == 1.0 and p[0, 1] == 3.0 and p[1, 1] == 0.0
     assert pool_depth(np.ones((9, 10), np.float32), 4).shape == (2, 2)  # trailing pixels dropped
+    d[1, 5], d[6, 2] = np.nan, np.inf  # not finite = invalid
+    p = pool_depth(d, 4)
+    assert p[0, 1] == 0.0 and p[1, 0] == 0.0 and p[0, 0] == 1.0
 
 
 def test_a_point_is_seen_through_only_well_in_front_of_what_a_view_measured():
@@ -37,3 +40,4 @@ def test_a_point_is_seen_through_only_well_in_front_of_what_a_view_measured():
     near = PooledDepth.of(np.full((INTR.height, INTR.width), 2.02, np.float32), side, INTR, stride=4)
     assert seen_through(pts, [near], margin=0.03).tolist() == [False] * 5  # within its margin
     assert seen_through(pts[:0], [view], 0.03).shape == (0,)
+

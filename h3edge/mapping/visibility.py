@@ -8,6 +8,11 @@ centimetres behind its front face, and another view that looks past it sees the 
 block with any invalid pixel knows nothing), so that a claim of free space near a depth edge is
 conservative: every pixel of the block saw past the point.
 
+The pooling runs once per frame as a numba kernel (:mod:`h3edge.mapping._visibility_kernels`); the
+test runs in every training step as batched torch ops on the points' device (one projection of
+every point into every view of a group: ~1.5 ms for 9,000 points against 9 views on two cores, no
+faster as a serial numba loop).
+
 Usage::
 
     views = [PooledDepth.of(depth, pose, intrinsics, stride=4) for depth, pose, intrinsics in frames]
@@ -26,11 +31,13 @@ from h3edge.geometry.camera import Intrinsics
 
 def pool_depth(depth: np.ndarray, stride: int) -> np.ndarray:
     """The minimum of each ``stride`` x ``stride`` block of ``depth`` (m, 0 = invalid), 0 where any
-    pixel of the block is invalid; (H // stride, W // stride) float32 (trailing pixels dropped)."""
-    h, w = depth.shape[0] // stride, depth.shape[1] // stride
-    blocks = np.asarray(depth, np.float32)[:h * stride, :w * stride].reshape(h, stride, w, stride)
-    low = blocks.min(axis=(1, 3))
-    return np.where(low > 0, low, np.float32(0)).astype(np.float32)
+    pixel of the block is invalid (0, NaN, inf); (H // stride, W // stride) float32 (trailing pixels
+    dropped)."""
+    from h3edge.mapping import _visibility_kernels as k
+
+    out = np.empty((depth.shape[0] // stride, depth.shape[1] // stride), np.float32)
+    k.pool_min(np.ascontiguousarray(depth, np.float32), int(stride), out)
+    return out
 
 
 @dataclass
@@ -62,19 +69,27 @@ def seen_through(points: torch.Tensor, views: list[PooledDepth], margin: float) 
     groups: dict[tuple, list[PooledDepth]] = {}
     for v in views:
         groups.setdefault((v.intrinsics, v.stride, v.depth.shape), []).append(v)
-    dev, dt = points.device, points.dtype
-    for (k, s, (h, w)), vs in groups.items():
-        poses = torch.from_numpy(np.stack([v.pose for v in vs])).to(dev, dt)  # (V, 4, 4)
-        depth = torch.from_numpy(np.stack([v.depth for v in vs])).to(dev)  # (V, h, w)
-        cam = torch.bmm(points[None].expand(len(vs), -1, -1) - poses[:, None, :3, 3], poses[:, :3, :3])
-        z = cam[..., 2]
-        front = z > 1e-3
-        zs = torch.where(front, z, torch.ones_like(z))
-        col = torch.floor((k.fx * cam[..., 0] / zs + k.cx) / s)
-        row = torch.floor((k.fy * cam[..., 1] / zs + k.cy) / s)
-        ok = front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        flat = torch.arange(len(vs), device=dev)[:, None] * (h * w) + (row.clamp(0, h - 1) * w
-                                                                         + col.clamp(0, w - 1)).long()
-        d = depth.reshape(-1)[flat].to(dt)
-        free |= (ok & (d > 0) & (d > z + margin)).any(0)
+    for (k, s, _), vs in groups.items():
+        free |= _seen_through_group(points, vs, k, s, margin)
     return free
+
+
+def _seen_through_group(points: torch.Tensor, views: list[PooledDepth], k: Intrinsics, stride: int,
+                        margin: float) -> torch.Tensor:
+    """:func:`seen_through` for one group of views (same intrinsics and block size): every point
+    projected into every view."""
+    dev, dt = points.device, points.dtype
+    h, w = views[0].depth.shape
+    poses = torch.from_numpy(np.stack([v.pose for v in views])).to(dev, dt)  # (V, 4, 4)
+    depth = torch.from_numpy(np.stack([v.depth for v in views])).to(dev)  # (V, h, w)
+    cam = torch.bmm(points[None].expand(len(views), -1, -1) - poses[:, None, :3, 3], poses[:, :3, :3])
+    z = cam[..., 2]
+    front = z > 1e-3
+    zs = torch.where(front, z, torch.ones_like(z))
+    col = torch.floor((k.fx * cam[..., 0] / zs + k.cx) / stride)
+    row = torch.floor((k.fy * cam[..., 1] / zs + k.cy) / stride)
+    ok = front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    flat = torch.arange(len(views), device=dev)[:, None] * (h * w) + (row.clamp(0, h - 1) * w
+                                                                     + col.clamp(0, w - 1)).long()
+    d = depth.reshape(-1)[flat].to(dt)
+    return (ok & (d > 0) & (d > z + margin)).any(0)
