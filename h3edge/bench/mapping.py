@@ -18,7 +18,7 @@ Both run in this process on the same frames; per-frame time is the median of the
 integration time (TSDF) or whole-frame time including reading and decoding (h3edge). Beside Depth L1:
 the share of valid pixels rendered "off", > 5 cm (Replica: 10 cm) in front of / behind the sensor
 depth, and the median error. Output: a markdown table and JSON, and one picture per dataset (OUT_<dataset>.png; rows are
-held-out views; columns: sensor colour | h3edge | TSDF | h3edge depth error | TSDF depth error,
+held-out views; columns: sensor colour | h3edge | TSDF | h3edge depth error (then each variant's) | TSDF depth error,
 red = > 5 cm in front of the sensor depth, blue = > 5 cm behind, grey = within, white = not
 rendered, black = no sensor depth).
 
@@ -156,7 +156,7 @@ def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_
     if live_hz:
         runs[f"h3edge live @ {live_hz:g} Hz" + (f" + {settle_s:g} s" if settle_s else "")] = dict(
             settings=settings, camera_hz=live_hz, settle_s=settle_s)
-    rows, first, stats = [], None, {}
+    rows, first, stats, mappers = [], None, {}, {}
     for k, (label, kw) in enumerate(runs.items()):
         log.info("%s: %s, %d frames", name, label, len(seq) if frames is None else frames)
         run = run_offline(seq, profile, work / f"{name}_h3edge{'' if k == 0 else f'_{k}'}", frames=frames,
@@ -166,25 +166,29 @@ def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_
         row.update(frames_mapped=run["stats"]["frames_mapped"], iterations=run["replay"]["iterations"])
         rows.append(row)
         stats[label] = run["stats"]
+        mappers[label] = run["mapper"]
         first = first or run
     rows.append(_row(f"TSDF fusion (Open3D, {1000 * tsdf_voxel:.0f} mm)", tsdf_times,
                      evaluate(seq, mesh=tsdf, cfg=profile.eval)))
     if picture is not None:
-        write_comparison(seq, first["mapper"], MeshRenderer(tsdf), picture, profile.eval.depth_error_threshold)
+        write_comparison(seq, list(mappers.values()), MeshRenderer(tsdf), picture, profile.eval.depth_error_threshold)
     return {"dataset": name, "frames": len(first["mapper"].timings.samples["frame"]), "rows": rows,
             "h3edge_components": first["mapper"].timings.summary(), "h3edge_stats": stats}
 
 
-def write_comparison(seq, h3, tsdf, path: Path, threshold: float = 0.05, views: int = 4, tile: int = 256) -> None:
-    """One row per held-out view (training views when there are none): sensor colour | h3edge |
-    TSDF | h3edge depth error | TSDF depth error (:func:`~h3edge.eval.metrics.depth_error_map`)."""
+def write_comparison(seq, h3: list, tsdf, path: Path, threshold: float = 0.05, views: int = 4, tile: int = 256) -> None:
+    """One row per held-out view (training views when there are none): sensor colour | the first
+    h3edge map | TSDF | each h3edge map's depth error (the first, then every variant's, in order) |
+    TSDF depth error (:func:`~h3edge.eval.metrics.depth_error_map`)."""
     held = getattr(seq, "heldout", None)
     src = held if held is not None and len(held) else seq
     rows = []
     for i in np.linspace(0, len(src) - 1, min(views, len(src))).round().astype(int):
         f = src[int(i)]
-        (c1, d1), (c2, d2) = h3.render(f.intrinsics, f.pose), tsdf.render(f.intrinsics, f.pose)
-        tiles = [f.color, c1, c2, depth_error_map(d1, f.depth, threshold), depth_error_map(d2, f.depth, threshold)]
+        renders = [m.render(f.intrinsics, f.pose) for m in h3]
+        c2, d2 = tsdf.render(f.intrinsics, f.pose)
+        tiles = [f.color, renders[0][0], c2, *(depth_error_map(d, f.depth, threshold) for _, d in renders),
+                 depth_error_map(d2, f.depth, threshold)]
         h = int(round(tile * f.color.shape[0] / f.color.shape[1]))
         rows.append(np.concatenate([cv2.resize(t, (tile, h), interpolation=cv2.INTER_AREA) for t in tiles], 1))
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -68,8 +68,10 @@ class MapperConfig:
     min_valid_fraction: float = 0.01  # frames with less valid depth are dropped
     # depth pixels dropped on the near side of depth edges: those with a neighbour within
     # edge_radius pixels farther by more than edge_jump of their depth (flying and
-    # foreground-fattened pixels, :mod:`h3edge.geometry.depth_edges`; 0: keep every pixel)
-    edge_radius: int = 0
+    # foreground-fattened pixels, :mod:`h3edge.geometry.depth_edges`; 0: keep every pixel, the
+    # paper's). A departure, measured with carve_behind on real Kinect data: pixels rendered > 5 cm
+    # in front 3.8 -> 3.0 %, Depth L1 -9 %; sim Depth L1 -11 %, PSNR +0.1 dB (docs/silhouettes.md)
+    edge_radius: int = 2
     edge_jump: float = 0.05
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
