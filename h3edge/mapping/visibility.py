@@ -8,7 +8,7 @@ centimetres behind its front face, and another view that looks past it sees the 
 block with any invalid pixel knows nothing), so that a claim of free space near a depth edge is
 conservative: every pixel of the block saw past the point.
 
-The pooling runs once per frame as a numba kernel (:mod:`h3edge.mapping._visibility_kernels`); the
+The pooling runs once per frame as a numba kernel (:mod:`h3edge.mapping._pool_kernel`); the
 test runs in every training step as batched torch ops on the points' device (one projection of
 every point into every view of a group: ~1.5 ms for 9,000 points against 9 views on two cores, no
 faster as a serial numba loop).
@@ -33,7 +33,7 @@ def pool_depth(depth: np.ndarray, stride: int) -> np.ndarray:
     """The minimum of each ``stride`` x ``stride`` block of ``depth`` (m, 0 = invalid), 0 where any
     pixel of the block is invalid (0, NaN, inf); (H // stride, W // stride) float32 (trailing pixels
     dropped)."""
-    from h3edge.mapping import _visibility_kernels as k
+    from h3edge.mapping import _pool_kernel as k
 
     out = np.empty((depth.shape[0] // stride, depth.shape[1] // stride), np.float32)
     k.pool_min(np.ascontiguousarray(depth, np.float32), int(stride), out)

@@ -1,4 +1,4 @@
-"""Fused numba CPU kernel of the cross-view free-space record (see :mod:`h3edge.mapping.visibility`):
+"""Fused numba CPU kernel of the cross-view free-space test (see :mod:`h3edge.mapping.visibility`):
 a depth image pooled to its block minima, once per frame (numpy's strided block reduction took
 3-6 ms a 640x480 frame on two cores, this 0.2 ms).
 
