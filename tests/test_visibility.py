@@ -40,4 +40,3 @@ def test_a_point_is_seen_through_only_well_in_front_of_what_a_view_measured():
     near = PooledDepth.of(np.full((INTR.height, INTR.width), 2.02, np.float32), side, INTR, stride=4)
     assert seen_through(pts, [near], margin=0.03).tolist() == [False] * 5  # within its margin
     assert seen_through(pts[:0], [view], 0.03).shape == (0,)
-
