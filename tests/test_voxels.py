@@ -6,7 +6,7 @@ import torch
 
 from h3edge.geometry.camera import Intrinsics, look_at
 from h3edge.mapping.trilinear import CORNERS
-from h3edge.mapping.voxels import VoxelConfig, VoxelMap, lookup, pack, unpack
+from h3edge.mapping.voxels import VoxelConfig, VoxelMap, lookup, pack, points_by_voxel, unpack
 
 INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 WALL_Y = 2.03  # wall plane y = 2.03, camera at the origin looking along +y
@@ -140,3 +140,58 @@ def test_dense_lookup_matches_locate_on_faces_and_inside():
     g = ijk[vox[vox >= 0]]
     rel = pts[vox >= 0] / vs - g
     assert (rel > -1e-6).all() and (rel < 1 + 1e-6).all()
+
+
+def _locate_reference(vm: VoxelMap, pts: np.ndarray, eps: float = 1e-5) -> np.ndarray:
+    """``locate``'s rule point by point in plain Python: the floor voxel, else the first allocated
+    voxel across the faces the point lies on, the lower side first along each such axis."""
+    ids = {int(k): i for i, k in enumerate(vm.voxel_keys)}
+    out = []
+    for p in pts / vm.cfg.voxel_size:
+        g = np.floor(p).astype(np.int64)
+        a = np.round(p).astype(np.int64)
+        on = np.abs(p - a) < eps
+        found = ids.get(int(pack(g[None])[0]), -1)
+        for c in range(8):
+            if found >= 0:
+                break
+            bits = CORNERS[c].astype(bool)
+            if (bits & ~on).any():
+                continue
+            cand = np.where(on, np.where(bits, a, a - 1), g)
+            found = ids.get(int(pack(cand[None])[0]), -1)
+        out.append(found)
+    return np.array(out)
+
+
+def test_locate_follows_its_rule_on_faces_edges_and_corners():
+    vm = VoxelMap(VoxelConfig(min_points=3, neighbour_margin=0.4))
+    vm.allocate(wall_depth(), INTR, POSE)
+    rng = np.random.default_rng(1)
+    ijk = unpack(vm.voxel_keys)
+    vs = vm.cfg.voxel_size
+    # half-voxel lattice around allocated voxels: faces, edges and corners, some of unallocated ones
+    lattice = (ijk[rng.integers(0, len(ijk), 400)] * 2 + rng.integers(-1, 4, (400, 3))) * (vs / 2)
+    inner = (ijk[rng.integers(0, len(ijk), 200)] + rng.random((200, 3))) * vs
+    pts = np.concatenate([lattice, inner, rng.uniform(-3, 3, (200, 3))])
+    vox, frac = vm.locate(pts)
+    assert np.array_equal(vox, _locate_reference(vm, pts))
+    assert (vox[:400] >= 0).mean() > 0.5 and (vox[400:600] >= 0).all()
+    ok = vox >= 0
+    assert np.allclose(frac[ok], pts[ok] / vs - ijk[vox[ok]], atol=1e-9)  # relative to the voxel found
+    assert (frac >= 0).all() and (frac <= 1).all()
+
+
+def test_points_by_voxel_counts_and_sums_like_a_sort():
+    rng = np.random.default_rng(2)
+    pts = np.concatenate([rng.normal(0, 3, (50_000, 3)), rng.normal(1, 0.05, (20_000, 3))])  # > 2^13 voxels
+    pts[rng.random(len(pts)) < 0.1, rng.integers(0, 3)] = np.nan  # invalid rows are skipped
+    keys, counts, sums = points_by_voxel(pts, 0.1)
+    ok = np.isfinite(pts).all(1)
+    ref_keys, inv, ref_counts = np.unique(pack(np.floor(pts[ok] / 0.1)), return_inverse=True, return_counts=True)
+    assert np.array_equal(keys, ref_keys) and np.array_equal(counts, ref_counts)
+    ref_sums = np.stack([np.bincount(inv, weights=pts[ok][:, k]) for k in range(3)], -1)
+    assert np.allclose(sums, ref_sums, rtol=1e-12, atol=1e-9)
+    with pytest.raises(ValueError):
+        points_by_voxel(np.array([[1e6, 0.0, 0.0]]), 0.1)
+    assert len(points_by_voxel(np.full((4, 3), np.nan), 0.1)[0]) == 0

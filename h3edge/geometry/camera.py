@@ -88,12 +88,13 @@ def backproject(depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray | None = No
     """
     if depth.shape != (intr.height, intr.width):
         raise ValueError(f"depth shape {depth.shape} does not match intrinsics {intr.height}x{intr.width}")
-    z = depth.astype(np.float64)
-    z = np.where((z > 0) & np.isfinite(z), z, np.nan)
-    pts = pixel_rays_camera(intr) * z[..., None]
-    if c2w is not None:
-        pts = pts @ c2w[:3, :3].T + c2w[:3, 3]
-    return pts
+    from h3edge.geometry._backproject_kernel import backproject_into
+
+    pose = np.eye(4) if c2w is None else np.asarray(c2w, np.float64)
+    out = np.empty((intr.height, intr.width, 3), np.float64)
+    backproject_into(np.ascontiguousarray(depth), float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
+                     PIXEL_CENTER_OFFSET, np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]), out)
+    return out
 
 
 def project(points_world: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

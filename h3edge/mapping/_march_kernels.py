@@ -1,5 +1,7 @@
-"""Fused numba kernels of the renderer (see :mod:`h3edge.mapping.raymarch`): the prior march and the
-allocated-voxel samples of its full-SDF search.
+"""Fused numba kernels over open-addressed voxel hash tables: the renderer's prior march and the
+allocated-voxel samples of its full-SDF search (see :mod:`h3edge.mapping.raymarch`), the point
+location that training and the prior lookups share (:meth:`h3edge.mapping.voxels.VoxelMap.locate`),
+and the grouping of a frame's points by voxel that allocation starts from.
 
 Module-level so numba's on-disk cache is reused across processes (a closure recompiled, ~10 s,
 in every process: the first render of a service would have paid it).
@@ -53,6 +55,39 @@ def build_table(keys, hkeys, hids):
             s = (s + 1) & mask
         hkeys[s] = keys[i]
         hids[s] = i
+
+@nb.njit(cache=True)
+def voxel_point_stats(pts, vs, hkeys, counts, sums):
+    """Group points (metres; rows with a non-finite coordinate are skipped) by the voxel that
+    contains them, through the empty table ``hkeys`` (power-of-two length): per slot, the voxel's
+    packed key, its point count and the sum of its points. Returns the slots used, -1 when the
+    table passed half full (the caller retries with a larger one) or -2 when a point lies outside
+    the +-2^20 voxel range of the packed keys."""
+    mask = hkeys.shape[0] - 1
+    used = 0
+    for i in range(pts.shape[0]):
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            continue
+        ix = np.int64(math.floor(x / vs)) + _OFF
+        iy = np.int64(math.floor(y / vs)) + _OFF
+        iz = np.int64(math.floor(z / vs)) + _OFF
+        if ix < 0 or iy < 0 or iz < 0 or ix > _MASK or iy > _MASK or iz > _MASK:
+            return -2
+        key = (iz << (2 * _BITS)) | (iy << _BITS) | ix
+        s = slot_of(key, mask)
+        while hkeys[s] != key and hkeys[s] >= 0:
+            s = (s + 1) & mask
+        if hkeys[s] < 0:
+            used += 1
+            if 2 * used > hkeys.shape[0]:
+                return -1
+            hkeys[s] = key
+        counts[s] += 1
+        sums[s, 0] += x
+        sums[s, 1] += y
+        sums[s, 2] += z
+    return used
 
 @nb.njit(inline="always")
 def interpolate(vid, ux, uy, uz, vv, priors):
@@ -147,31 +182,52 @@ def march(o, dirs, nears, far, step, hkeys, hids, box_lo, box_hi, vs, vv, priors
             t += step
     return out
 
+@nb.njit(inline="always")
+def cell_of(px, py, pz, hkeys, hids, eps):
+    """(voxel id or -1, its integer corner) of a point in voxel units, as ``VoxelMap.locate``
+    defines it: the voxel ``floor`` picks, else the first allocated voxel across the faces the point
+    lies on (within ``eps`` voxels), the lower side first along each such axis (corners 0..7).
+    Priors are shared at vertices, so the value is the same from either side of a face."""
+    gx, gy, gz = math.floor(px), math.floor(py), math.floor(pz)
+    v = voxel_at(gx, gy, gz, hkeys, hids)
+    if v >= 0:
+        return v, gx, gy, gz
+    ax, ay, az = round(px), round(py), round(pz)
+    on_x, on_y, on_z = abs(px - ax) < eps, abs(py - ay) < eps, abs(pz - az) < eps
+    for c in range(8):
+        bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
+        if (bx and not on_x) or (by and not on_y) or (bz and not on_z):
+            continue  # the same candidate as a lower corner number
+        cx = (ax if bx else ax - 1) if on_x else gx
+        cy = (ay if by else ay - 1) if on_y else gy
+        cz = (az if bz else az - 1) if on_z else gz
+        v = voxel_at(cx, cy, cz, hkeys, hids)
+        if v >= 0:
+            return v, cx, cy, cz
+    return -1, gx, gy, gz
+
 @nb.njit(parallel=True, cache=True)
-def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
-    """Voxel id (-1 outside) and trilinear prior of points (metres) like ``VoxelMap.locate``: a point
-    within ``eps`` voxels of a face of an unallocated voxel belongs to the allocated one across it
-    (priors are shared at vertices, so the value is the same from either side)."""
+def locate_cells(pts, hkeys, hids, vs, eps, vox, frac):
+    """Voxel id (-1 outside) of points (metres) and their position inside it, clipped to [0, 1]^3
+    (:func:`cell_of`)."""
     for i in nb.prange(pts.shape[0]):
         px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
-        v, s = trilinear(px, py, pz, hkeys, hids, vv, priors)
-        if v < 0:
-            fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
-            ax, ay, az = round(px), round(py), round(pz)
-            on_x, on_y, on_z = abs(px - ax) < eps, abs(py - ay) < eps, abs(pz - az) < eps
-            for c in range(1, 8):
-                bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
-                if (bx and not on_x) or (by and not on_y) or (bz and not on_z):
-                    continue
-                # along each chosen axis, the voxel on the other side of the face from floor's
-                cx = (ax - 1 if fx >= ax else ax) if bx else fx
-                cy = (ay - 1 if fy >= ay else ay) if by else fy
-                cz = (az - 1 if fz >= az else az) if bz else fz
-                v = voxel_at(cx, cy, cz, hkeys, hids)
-                if v >= 0:
-                    s = interpolate(v, min(max(px - cx, 0.0), 1.0), min(max(py - cy, 0.0), 1.0),
-                                    min(max(pz - cz, 0.0), 1.0), vv, priors)
-                    break
+        v, gx, gy, gz = cell_of(px, py, pz, hkeys, hids, eps)
+        vox[i] = v
+        frac[i, 0] = min(max(px - gx, 0.0), 1.0)
+        frac[i, 1] = min(max(py - gy, 0.0), 1.0)
+        frac[i, 2] = min(max(pz - gz, 0.0), 1.0)
+
+@nb.njit(parallel=True, cache=True)
+def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
+    """Voxel id (-1 outside) and trilinear prior (0 outside) of points (metres) (:func:`cell_of`)."""
+    for i in nb.prange(pts.shape[0]):
+        px, py, pz = pts[i, 0] / vs, pts[i, 1] / vs, pts[i, 2] / vs
+        v, gx, gy, gz = cell_of(px, py, pz, hkeys, hids, eps)
+        s = 0.0
+        if v >= 0:
+            s = interpolate(v, min(max(px - gx, 0.0), 1.0), min(max(py - gy, 0.0), 1.0),
+                            min(max(pz - gz, 0.0), 1.0), vv, priors)
         vox[i], sdf[i] = v, s
 
 @nb.njit(parallel=True, cache=True)

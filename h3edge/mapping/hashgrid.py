@@ -19,7 +19,8 @@ the others always hash, so that two functions never index the same dense rows by
 Two interchangeable implementations give the same numbers:
 - ``torch``: plain PyTorch gathers, runs on CPU and CUDA;
 - ``numba``: fused CPU kernels (forward parallel over points; backward recomputes the corners,
-  parallel over levels, so scatter-adds never race).
+  parallel over levels, so scatter-adds never race, and flags the rows it touches; the lazy Adam
+  step walks those flags in address order, so that it streams through the table).
 Neither produces a dense gradient: backward yields the touched rows and their gradients, and
 :meth:`HashGrid.sparse_adam_step` updates only those rows (lazy Adam), never the whole table.
 """
@@ -120,7 +121,7 @@ class _TorchEncode(torch.autograd.Function):
 def _numba_kernels():
     from h3edge.mapping import _hash_kernels as k
 
-    return k.fwd, k.bwd, k.collect, k.adam
+    return k.fwd, k.bwd, k.collect, k.adam_touched, k.SCAN_BLOCK
 
 
 class _NumbaEncode(torch.autograd.Function):
@@ -139,16 +140,9 @@ class _NumbaEncode(torch.autograd.Function):
         grid, x = ctx.grid, ctx.x
         bwd = grid._kernels()[1]
         dense, consts = grid._fn_np[ctx.fn]
-        L, n = grid.spec.levels, len(x)
-        if len(grid._touched_rows) < L * n * 8:  # reused across steps: 8 corners x L levels per point
-            grid._touched_rows = np.empty(L * n * 8, np.int64)
-        touched_rows = grid._touched_rows
-        n_touched = np.zeros(L, np.int64)
-        buf, touched = grid._grad_buf.numpy(), grid._touched.numpy()
         bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np, dense,
-            grid.spec.table_size, *consts, buf, touched, touched_rows, n_touched)
-        # rows first touched by this call (flags persist until collected: lists never overlap)
-        grid._numba_rows.extend(touched_rows[l * n * 8: l * n * 8 + n_touched[l]].copy() for l in range(L))
+            grid.spec.table_size, *consts, grid._grad_buf.numpy(), grid._touched.numpy())
+        grid._numba_pending = True  # gradients and flags accumulate across calls until taken
         return None, None, None, None
 
 
@@ -195,8 +189,7 @@ class HashGrid(torch.nn.Module):
         if backend == "numba":
             self._grad_buf = torch.zeros_like(self.table)
             self._touched = torch.zeros(len(self.table), dtype=torch.bool)
-            self._touched_rows = np.empty(0, np.int64)
-            self._numba_rows: list[np.ndarray] = []  # touched rows awaiting take_sparse_grad
+            self._numba_pending = False  # flagged rows await the optimiser step or take_sparse_grad
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self._kern = None
 
@@ -207,8 +200,6 @@ class HashGrid(torch.nn.Module):
         for name in ("adam_m", "adam_v", "_grad_buf", "_touched"):
             if hasattr(self, name):
                 memo[id(getattr(self, name))] = torch.zeros(0)
-        if hasattr(self, "_touched_rows"):
-            memo[id(self._touched_rows)] = np.empty(0, np.int64)
         if self._kern is not None:
             memo[id(self._kern)] = self._kern
         return memo
@@ -255,10 +246,10 @@ class HashGrid(torch.nn.Module):
 
     def take_sparse_grad(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows touched since the last call and their summed gradients (rows unique)."""
-        if self.backend == "numba" and self._numba_rows:
+        if self.backend == "numba" and self._numba_pending:
             # the numba backward accumulates every call into one buffer: collect it once
-            rows = np.concatenate(self._numba_rows)
-            self._numba_rows = []
+            rows = np.flatnonzero(self._touched.numpy()).astype(np.int64)
+            self._numba_pending = False
             grads = np.empty((len(rows), self.spec.features), np.float32)
             self._kernels()[2](self._grad_buf.numpy(), self._touched.numpy(), rows, grads)
             return torch.from_numpy(rows), torch.from_numpy(grads)
@@ -278,16 +269,22 @@ class HashGrid(torch.nn.Module):
     @torch.no_grad()
     def sparse_adam_step(self, lr: float, betas=(0.9, 0.999), eps: float = 1e-15) -> int:
         """Lazy Adam on the touched rows only; returns how many rows were updated."""
+        if self.backend == "numba":
+            if not self._numba_pending:
+                return 0
+            self._numba_pending = False
+            self.adam_steps += 1
+            b1, b2 = betas
+            c1, c2 = 1 - b1 ** self.adam_steps, 1 - b2 ** self.adam_steps
+            kern, block = self._kernels()[3:5]
+            counts = np.zeros(-(-len(self.table) // block), np.int64)
+            kern(self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), self._grad_buf.numpy(),
+                 self._touched.numpy(), lr, b1, b2, eps, c1, c2, counts)
+            return int(counts.sum())
         rows, g = self.take_sparse_grad()
         if len(rows) == 0:
             return 0
         self.adam_steps += 1
-        if self.backend == "numba":
-            b1, b2 = betas
-            c1, c2 = 1 - b1 ** self.adam_steps, 1 - b2 ** self.adam_steps
-            self._kernels()[3](self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), rows.numpy(),
-                               g.numpy(), lr, b1, b2, eps, c1, c2)
-            return len(rows)
         lazy_adam_rows(self.table, self.adam_m, self.adam_v, rows, g, self.adam_steps, lr, betas, eps)
         return len(rows)
 

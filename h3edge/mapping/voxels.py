@@ -58,6 +58,28 @@ def lookup(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return np.where(sorted_keys[i] == keys, i, -1)
 
 
+def points_by_voxel(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voxels that hold ``points`` (N, 3; rows with NaN are skipped): their packed keys
+    (sorted), point counts and coordinate sums (K, 3). One pass through a hash table."""
+    from h3edge.mapping import _march_kernels as k
+
+    pts = np.ascontiguousarray(points, np.float64)
+    cap = 1 << 14
+    while True:
+        hkeys = np.full(cap, -1, np.int64)
+        counts, sums = np.zeros(cap, np.int64), np.zeros((cap, 3), np.float64)
+        used = k.voxel_point_stats(pts, float(voxel_size), hkeys, counts, sums)
+        if used == -2:
+            raise ValueError("voxel coordinate outside the +-2^20 range")
+        if used >= 0:
+            break
+        cap *= 4
+    slots = np.flatnonzero(hkeys >= 0)
+    order = np.argsort(hkeys[slots])
+    slots = slots[order]
+    return hkeys[slots], counts[slots], sums[slots]
+
+
 class KeyIndex:
     """Append-only key -> id map (ids in insertion order) over a sorted index."""
 
@@ -144,6 +166,7 @@ class VoxelMap:
         self.prior_set = np.zeros(0, bool)
         self.prior_obs = np.zeros(0, np.uint8)  # fused observations per vertex (prior_fusion_frames)
         self.refused = 0  # voxels not allocated because of the cap
+        self._table: tuple[np.ndarray, VoxelTable] | None = None  # (the keys it indexes, the table)
 
     def __len__(self) -> int:
         return len(self.voxels)
@@ -182,22 +205,16 @@ class VoxelMap:
     def vertex_keys(self) -> np.ndarray:
         return self.vertices.keys
 
-    def voxel_coords(self, points: np.ndarray) -> np.ndarray:
-        return np.floor(points / self.cfg.voxel_size).astype(np.int64)
-
     def allocate(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, points: np.ndarray | None = None
                  ) -> np.ndarray:
         """Allocate voxels seen by a frame; returns the keys of the newly created voxels.
         ``points``: the frame's world back-projection (H, W, 3), when the caller already has it."""
         pts = (backproject(depth, intr, c2w) if points is None else points).reshape(-1, 3)
-        pts = pts[np.isfinite(pts).all(1)]
-        if len(pts) == 0:
+        keys, counts, sums = points_by_voxel(pts, self.cfg.voxel_size)
+        if len(keys) == 0:
             return np.zeros(0, np.int64)
-        ijk = self.voxel_coords(pts)
-        keys, inv, counts = np.unique(pack(ijk), return_inverse=True, return_counts=True)
         ok = counts >= self.cfg.min_points
         # mean point inside each voxel, in voxel units relative to its corner
-        sums = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(keys)) for k in range(3)], -1)
         frac = sums / (counts[:, None] * self.cfg.voxel_size) - unpack(keys)
         cand = [keys[ok]]
         m = self.cfg.neighbour_margin
@@ -312,29 +329,19 @@ class VoxelMap:
         voxel ``floor`` picks is not allocated, the neighbour across that face is tried. Priors are
         shared at vertices, so the trilinear value is the same from both sides; this is what lets
         mesh extraction evaluate lattice points on the surface of the allocated region.
+        One parallel pass through the voxel hash table (:meth:`table`).
         """
-        p = np.asarray(points, np.float64) / self.cfg.voxel_size
-        g = np.floor(p).astype(np.int64)
-        vox = self.voxels.find(pack(g))
-        miss = vox < 0
-        if miss.any():
-            pm, gm = p[miss], g[miss]
-            a = np.round(pm).astype(np.int64)
-            on_face = np.abs(pm - a) < eps
-            lo, hi = np.where(on_face, a - 1, gm), np.where(on_face, a, gm)
-            vm = np.full(len(pm), -1, np.int64)
-            for c in range(8):
-                bits = CORNERS[c].astype(bool)
-                if not on_face[:, bits].any() and c:
-                    continue
-                cand = np.where(bits[None], hi, lo)
-                todo = vm < 0
-                found = self.voxels.find(pack(cand[todo]))
-                idx = np.flatnonzero(todo)[found >= 0]
-                vm[idx] = found[found >= 0]
-                gm[idx] = cand[idx]
-            vox[miss], g[miss] = vm, gm
-        return vox, np.clip(p - g, 0.0, 1.0)
+        from h3edge.mapping import _march_kernels as k
+
+        pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        vox = np.full(len(pts), -1, np.int64)
+        frac = np.empty((len(pts), 3), np.float64)
+        if len(self.voxel_keys) == 0:
+            g = np.floor(pts / self.cfg.voxel_size)
+            return vox, np.clip(pts / self.cfg.voxel_size - g, 0.0, 1.0)
+        tab = self.table()
+        k.locate_cells(pts, tab.hkeys, tab.hids, float(self.cfg.voxel_size), float(eps), vox, frac)
+        return vox, frac
 
     def coarse_sdf(self, points: torch.Tensor, located: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -351,18 +358,26 @@ class VoxelMap:
 
     def table(self) -> VoxelTable:
         """Open-addressed hash table of the voxel ids (constant-time lookups for ray marching, in
-        memory proportional to the voxel count wherever the voxels are) and their bounding box."""
-        from h3edge.mapping import _march_kernels as k
+        memory proportional to the voxel count wherever the voxels are) and their bounding box.
+        Built once per set of voxels (voxels are only ever added, which replaces the key array)."""
+        keys = self.voxels.keys
+        if self._table is None or self._table[0] is not keys:
+            self._table = (keys, _build_table(keys))
+        return self._table[1]
 
-        n = len(self.voxel_keys)
-        cap = 1 << max(4, int(np.ceil(np.log2(2 * max(n, 1)))))  # load factor <= 1/2
-        hkeys = np.full(cap, -1, np.int64)
-        hids = np.full(cap, -1, np.int32)
-        if n == 0:
-            return VoxelTable(hkeys, hids, np.zeros(3, np.int64), np.zeros(3, np.int64))
-        k.build_table(np.ascontiguousarray(self.voxel_keys, np.int64), hkeys, hids)
-        ijk = unpack(self.voxel_keys)
-        return VoxelTable(hkeys, hids, ijk.min(0).astype(np.int64), ijk.max(0).astype(np.int64) + 1)
+
+def _build_table(voxel_keys: np.ndarray) -> VoxelTable:
+    from h3edge.mapping import _march_kernels as k
+
+    n = len(voxel_keys)
+    cap = 1 << max(4, int(np.ceil(np.log2(2 * max(n, 1)))))  # load factor <= 1/2
+    hkeys = np.full(cap, -1, np.int64)
+    hids = np.full(cap, -1, np.int32)
+    if n == 0:
+        return VoxelTable(hkeys, hids, np.zeros(3, np.int64), np.zeros(3, np.int64))
+    k.build_table(np.ascontiguousarray(voxel_keys, np.int64), hkeys, hids)
+    ijk = unpack(voxel_keys)
+    return VoxelTable(hkeys, hids, ijk.min(0).astype(np.int64), ijk.max(0).astype(np.int64) + 1)
 
 
 @dataclass(frozen=True)
