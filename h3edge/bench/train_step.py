@@ -4,9 +4,13 @@ Maps the first ``--frames`` frames of a sequence (the real dev set by default), 
 ray batches from the selected keyframes, then times ``train_step`` on the same batches for each
 ``train.color_weight_floor`` in ``--floors``, the settings alternated for ``--rounds`` rounds
 (medians; the first round is warm-up). Also reports the share of in-voxel band samples above
-each floor. Output: a markdown table and JSON.
+each floor, and the median time of a mapped frame (frames 10 on, while mapping, with the profile's
+floor). Output: a markdown table and JSON.
 
     python -m h3edge.bench.train_step [--sequence real|default|studio|PATH] [--floors 0 0.001 0.01]
+
+To compare two versions of the code at equal rays, run it with one floor in both checkouts,
+alternated (``PYTHONPATH=CHECKOUT python -m h3edge.bench.train_step --floors 0.001``).
 """
 
 from __future__ import annotations
@@ -55,8 +59,12 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     seq = open_dataset(args.sequence, Path(args.work))
     m = Mapper(load_profile(args.profile).map_settings())
+    frame_s = []
     for i in range(min(args.frames, len(seq))):
+        t0 = time.perf_counter()
         m.process(seq[i])
+        frame_s.append(time.perf_counter() - t0)
+    frame_ms = 1000 * float(np.median(frame_s[10:] or frame_s))
     batches = [m._sample_rays([k.payload for k in m.keyframes.select()]) for _ in range(args.batches)]
     times: dict[float, list[float]] = {f: [] for f in args.floors}
     for rnd in range(args.rounds):
@@ -69,13 +77,14 @@ def main(argv=None) -> int:
                     times[floor].append(time.perf_counter() - t0)
     base = float(np.median(times[args.floors[0]]))
     rows = [{"floor": f, "band_share": band_share(m, batches[0], f), "step_ms": 1000 * float(np.median(v)),
-             "speedup": base / float(np.median(v))} for f, v in times.items()]
+             "speedup": base / float(np.median(v)), "frame_ms": frame_ms} for f, v in times.items()]
     title = (f"training step, {len(batches[0].depth)} rays, {args.sequence} after {args.frames} frames "
              f"({args.profile}, medians of {args.rounds - 1} rounds x {args.batches} batches)")
     write_table(args.out, title, [("colour weight floor", lambda r: r["floor"], None),
                                   ("band samples coloured", lambda r: f"{100 * r['band_share']:.0f} %", None),
                                   ("step [ms]", lambda r: r["step_ms"], 1),
-                                  (f"speed-up vs floor {args.floors[0]:g}", lambda r: r["speedup"], 2)], rows)
+                                  (f"speed-up vs floor {args.floors[0]:g}", lambda r: r["speedup"], 2),
+                                  ("frame [ms] (mapping)", lambda r: r["frame_ms"], 0)], rows)
     return 0
 
 
