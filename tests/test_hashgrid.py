@@ -145,14 +145,16 @@ def test_inference_stores_nothing(points):
 
 def test_sparse_adam_backends_agree(points):
     x = torch.tensor(points, dtype=torch.float32)
-    tables = {}
+    tables, steps = {}, {}
     for b in BACKENDS:
         grid = make_grid(b)
-        for _ in range(3):
-            (grid(x) ** 2).sum().backward()
-            grid.sparse_adam_step(lr=1e-2)
-        tables[b] = grid.table.detach()
+        for i in range(4):
+            pts = x[:0] if i == 1 else x  # a step without points moves nothing and counts no step
+            (grid(pts) ** 2).sum().backward()
+            assert (grid.sparse_adam_step(lr=1e-2) == 0) == (i == 1)
+        tables[b], steps[b] = grid.table.detach(), grid.adam_steps
     assert torch.allclose(tables["torch"], tables["numba"], atol=1e-6)
+    assert steps["torch"] == steps["numba"] == 3
 
 
 def test_backends_agree_over_several_hash_functions(points):

@@ -104,7 +104,7 @@ class _TorchEncode(torch.autograd.Function):
         ctx.save_for_backward(idx, w)
         ctx.grid = grid
         feats = table[idx]  # (N, L, 8, F)
-        return (feats * w[..., None]).sum(2).reshape(len(xn), -1)
+        return (feats * w[..., None]).sum(2).reshape(len(xn), grid.spec.out_dim)
 
     @staticmethod
     def backward(ctx, grad_out):
@@ -273,14 +273,17 @@ class HashGrid(torch.nn.Module):
             if not self._numba_pending:
                 return 0
             self._numba_pending = False
-            self.adam_steps += 1
+            step = self.adam_steps + 1  # counted only when a row moves, as the torch path counts
             b1, b2 = betas
-            c1, c2 = 1 - b1 ** self.adam_steps, 1 - b2 ** self.adam_steps
+            c1, c2 = 1 - b1 ** step, 1 - b2 ** step
             kern, block = self._kernels()[3:5]
             counts = np.zeros(-(-len(self.table) // block), np.int64)
             kern(self.table.detach().numpy(), self.adam_m.numpy(), self.adam_v.numpy(), self._grad_buf.numpy(),
                  self._touched.numpy(), lr, b1, b2, eps, c1, c2, counts)
-            return int(counts.sum())
+            updated = int(counts.sum())
+            if updated:
+                self.adam_steps = step
+            return updated
         rows, g = self.take_sparse_grad()
         if len(rows) == 0:
             return 0
