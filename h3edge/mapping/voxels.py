@@ -336,10 +336,7 @@ class VoxelMap:
         pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
         vox = np.full(len(pts), -1, np.int64)
         frac = np.empty((len(pts), 3), np.float64)
-        if len(self.voxel_keys) == 0:
-            g = np.floor(pts / self.cfg.voxel_size)
-            return vox, np.clip(pts / self.cfg.voxel_size - g, 0.0, 1.0)
-        tab = self.table()
+        tab = self.table()  # an empty map's table finds nothing: every point -1, frac from floor
         k.locate_cells(pts, tab.hkeys, tab.hids, float(self.cfg.voxel_size), float(eps), vox, frac)
         return vox, frac
 
