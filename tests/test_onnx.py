@@ -10,15 +10,13 @@ import torch
 from h3edge.geometry.camera import backproject
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, OrtMLP, export_decoders, mlp_to_onnx
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
                        voxels=VoxelConfig(min_points=3),
-                       field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14),
-                       keyframes=KeyframeConfig(stored_pixels=2000))
+                       field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14))
 ONNX = InferenceConfig(decoders="onnx", threads=1)
 
 

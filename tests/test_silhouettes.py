@@ -36,7 +36,6 @@ from h3edge.geometry.camera import Intrinsics, look_at
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import FieldConfig
-from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.raymarch import RenderConfig
 from h3edge.mapping.trainer import TrainConfig
@@ -91,8 +90,7 @@ def frames(mesh: trimesh.Trimesh, n: int, heldout: bool = False, noisy: bool = T
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=2048, iterations=2, extent=6.4),
                        voxels=VoxelConfig(min_points=3),
-                       field=FieldConfig(sdf_layers=2, geo_log2_table=16, tex_log2_table=16),
-                       keyframes=KeyframeConfig(stored_pixels=8000))
+                       field=FieldConfig(sdf_layers=2, geo_log2_table=16, tex_log2_table=16))
 
 
 @pytest.fixture(scope="module")

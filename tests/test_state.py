@@ -11,14 +11,12 @@ import torch
 
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import FieldConfig
-from h3edge.mapping.keyframes import KeyframeConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
                        voxels=VoxelConfig(min_points=3),
-                       field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14),
-                       keyframes=KeyframeConfig(stored_pixels=2000))
+                       field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14))
 
 
 @pytest.fixture(scope="module")
@@ -50,14 +48,22 @@ def _clone(m: Mapper) -> Mapper:
             g._kern = k
 
 
-def test_keyframes_keep_a_pixel_subset(half_mapped):
-    _, m = half_mapped
+def test_keyframes_keep_whole_images(half_mapped):
+    seq, m = half_mapped
     kf = m.keyframes.keyframes[-1].payload
-    assert len(kf.pix) == 2000 and len(np.unique(kf.pix)) == 2000
+    frame = next(f for f in seq if f.index == m.keyframes.keyframes[-1].frame_id)
+    h, w = kf.intrinsics.height, kf.intrinsics.width
+    assert kf.color.shape == (h, w, 3) and np.array_equal(kf.color, frame.color)
+    # the cleaned depth, quantised to uint16 steps of max depth / 65535
+    clean = m.clean_depth(frame.depth)
+    assert np.array_equal(kf.depth > 0, clean > 0) and kf.n_valid == np.count_nonzero(clean)
+    assert np.abs(kf.depth - clean).max() <= kf.depth_unit / 2 + 1e-6 < 1e-4
     # and the depth image pooled to 4 x 4 blocks, for the cross-view free-space test (train.carve_behind)
-    h, w = kf.intrinsics.height // 4, kf.intrinsics.width // 4
-    assert kf.pooled is not None and kf.pooled.depth.shape == (h, w)
-    assert kf.nbytes < 2000 * 12 + 200 + 4 * h * w
+    assert kf.pooled is not None and kf.pooled.depth.shape == (h // 4, w // 4)
+    assert kf.nbytes <= 5 * h * w + 4 * (h // 4) * (w // 4) + 2 * 8 * 16  # images, pooled depth, poses
+    restored = Mapper.from_state_dict(SETTINGS, *m.state_dict()).keyframes.keyframes[-1].payload
+    assert np.array_equal(restored.color, kf.color) and np.array_equal(restored.depth_q, kf.depth_q)
+    assert restored.depth_unit == kf.depth_unit and restored.n_valid == kf.n_valid
 
 
 def test_restored_mapper_continues_identically(half_mapped):

@@ -49,7 +49,7 @@ from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
-STATE_VERSION = 1  # of Mapper.state_dict
+STATE_VERSION = 2  # of Mapper.state_dict (2: keyframes keep whole images)
 
 
 @dataclass(frozen=True)
@@ -121,18 +121,16 @@ class ImageFrame:
     pix: np.ndarray  # int32 flat indices of the valid-depth pixels
     pooled: PooledDepth | None = None  # the depth pooled for ``train.carve_behind``, once per frame
 
-    def sample(self, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p = self.pix[j]
+    def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``n`` valid pixels drawn uniformly with replacement: flat indices, colours, depths (as
+        :meth:`StoredFrame.draw`)."""
+        p = self.pix[rng.integers(0, len(self.pix), n)]
         return p, self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p]
 
-    def subset(self, n: int, rng: np.random.Generator) -> StoredFrame:
-        """A keyframe's store: at most ``n`` of the valid pixels, drawn without replacement (0: all),
-        and the pooled depth."""
-        p = self.pix
-        if 0 < n < len(p):
-            p = p[np.sort(rng.choice(len(p), n, replace=False))]
-        return StoredFrame(p.copy(), self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p], self.pose,
-                           self.intrinsics, self.pooled)
+    def store(self) -> StoredFrame:
+        """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`) and the
+        pooled depth."""
+        return StoredFrame.of(self.color, self.depth, self.pose, self.intrinsics, self.pooled)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -311,7 +309,7 @@ class Mapper:
                 grad = color_gradient(current.color, current.depth, self.settings.texture.depth_jump)
             scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
         self.keyframes.insert(frame_id, observed, scores,
-                              payload=current.subset(self.settings.keyframes.stored_pixels, self.rng))
+                              payload=current.store())
         return True
 
     def train_between_frames(self) -> dict | None:
@@ -348,7 +346,7 @@ class Mapper:
         o, d, z, c = [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            pix, rgb, depth = f.sample(self.rng.integers(0, len(f.pix), n_each))
+            pix, rgb, depth = f.draw(n_each, self.rng)
             cam = self._camera_rays(f.intrinsics)[pix]
             d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
             o.append(np.broadcast_to(f.pose[:3, 3].astype(np.float32), (n_each, 3)))

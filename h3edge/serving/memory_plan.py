@@ -1,6 +1,6 @@
 """The service's memory plan: the byte budget split up front into the hash tables, the voxel cap,
 a query's map copy and scratch, the checkpoint capture, the largest admitted frame's buffers, the
-observed free space at its cap, and what is left for keyframes (which sets the keyframe cap)."""
+observed free space at its cap, and what is left for keyframes (the keyframe set's byte cap)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
 
 
 def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
-    n = settings.keyframes.stored_pixels or frame_pixels
+    """Bytes one keyframe of ``frame_pixels`` keeps (:class:`~h3edge.mapping.keyframes.StoredFrame`)."""
     t = settings.train
     pooled = 4 * frame_pixels // t.carve_stride ** 2 if t.carve_behind else 0  # carve_behind's pooled depth
-    return n * (4 + 3 + 4) + 4096 + pooled  # pixel index, RGB, depth; voxel ids and scores
+    return frame_pixels * (3 + 2) + 4096 + pooled  # RGB, uint16 depth; voxel ids and scores

@@ -115,8 +115,8 @@ class MapService:
                                 cfg.max_frame_pixels, cfg.ingest_queue)
         if not self.plan["fits"]:
             log.warning("memory budget %d MB leaves little for keyframes: %s", cfg.memory_budget_mb, self.plan)
-        kf = dataclasses.replace(settings.keyframes, max_keyframes=min(
-            settings.keyframes.max_keyframes or 1 << 30, self.plan["max_keyframes"]))
+        kf = dataclasses.replace(settings.keyframes, max_bytes=min(
+            settings.keyframes.max_bytes or 1 << 62, max(self.plan["keyframes"], 8 * self.plan["keyframe_bytes"])))
         self.settings = dataclasses.replace(settings, keyframes=kf)
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
