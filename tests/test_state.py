@@ -120,3 +120,23 @@ def test_frozen_view_is_independent(half_mapped):
     assert snap.field.geo_grid.adam_m.numel() == 0  # no optimiser state copied
     mesh = frozen.mesh(resolution=2)
     assert len(mesh.faces) > 100
+
+
+def test_state_from_before_whole_image_keyframes_keeps_the_map(half_mapped):
+    """A version-1 state (keyframes kept a pixel subset) resumes with its map and no keyframes;
+    mapping goes on and rebuilds the set. An unknown version is refused."""
+    seq, m = half_mapped
+    meta, arrays = m.state_dict()
+    old = {k: v for k, v in arrays.items() if not k.startswith(("kf/color", "kf/depth_q"))}
+    n = len(m.keyframes.keyframes)
+    old.update({"kf/pix": np.zeros(5 * n, np.int32), "kf/pix_offsets": np.arange(0, 5 * n + 1, 5),
+                "kf/rgb": np.zeros((5 * n, 3), np.uint8), "kf/rgb_offsets": np.arange(0, 5 * n + 1, 5),
+                "kf/depth": np.ones(5 * n, np.float32), "kf/depth_offsets": np.arange(0, 5 * n + 1, 5)})
+    r = Mapper.from_state_dict(SETTINGS, {**meta, "state_version": 1}, old)
+    assert r.keyframes.keyframes == [] and len(r.voxels) == len(m.voxels)
+    a, b = _params(m), _params(r)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    f = list(seq)[20]
+    assert r.process(f).mapped and len(r.keyframes.keyframes) == 1
+    with pytest.raises(ValueError, match="state version 7"):
+        Mapper.from_state_dict(SETTINGS, {**meta, "state_version": 7}, arrays)

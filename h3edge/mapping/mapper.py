@@ -50,6 +50,9 @@ from h3edge.profiling.timing import Timings
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
 STATE_VERSION = 2  # of Mapper.state_dict (2: keyframes keep whole images)
+# states this build still reads; from version 1 (keyframes kept a fixed pixel subset) the map is
+# taken and the keyframes are dropped: new frames rebuild the set
+READABLE_STATE_VERSIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -432,8 +435,9 @@ class Mapper:
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
         """Take the state :meth:`state_dict` captured, on a mapper built with the same settings and
         the captured ``bound`` (:meth:`from_state_dict` does both). ValueError when it does not fit."""
-        if meta.get("state_version") != STATE_VERSION:
-            raise ValueError(f"map state version {meta.get('state_version')} is not {STATE_VERSION}")
+        version = meta.get("state_version")
+        if version not in READABLE_STATE_VERSIONS:
+            raise ValueError(f"map state version {version} is not one of {READABLE_STATE_VERSIONS}")
         if self.field is None or not np.allclose(self.bound, np.asarray(meta["bound"], np.float64)):
             raise ValueError("load_state_dict needs a mapper built with the state's bound (use from_state_dict)")
         for name, grid in self._named_grids().items():
@@ -462,7 +466,11 @@ class Mapper:
         self.voxels.load_state_dict(meta, _unprefixed("voxels", arrays))
         self.prior_opt.load_state_dict(_original_meta("prior_opt", meta), _unprefixed("prior_opt", arrays),
                                        self.device)
-        self.keyframes.load_state_dict(meta, _unprefixed("kf", arrays))
+        if version >= 2:
+            self.keyframes.load_state_dict(meta, _unprefixed("kf", arrays))
+        else:
+            log.warning("map state version %s: its keyframes kept pixel subsets; dropped (new frames rebuild "
+                        "the keyframe set)", version)
         self.patterns.load_state_dict(_original_meta("patterns", meta), _unprefixed("patterns", arrays))
         if "free/keys" in arrays:  # checkpoints from before the free-space record have none
             self.free_space.load_state_dict(meta, _unprefixed("free", arrays))
@@ -475,8 +483,8 @@ class Mapper:
     @classmethod
     def from_state_dict(cls, settings: MapSettings, meta: dict, arrays: dict[str, np.ndarray]) -> Mapper:
         """A mapper in the captured state (``settings`` must be the ones it ran with)."""
-        if meta.get("state_version") != STATE_VERSION:
-            raise ValueError(f"map state version {meta.get('state_version')} is not {STATE_VERSION}")
+        if meta.get("state_version") not in READABLE_STATE_VERSIONS:
+            raise ValueError(f"map state version {meta.get('state_version')} is not one of {READABLE_STATE_VERSIONS}")
         m = cls(settings, bound=np.asarray(meta["bound"], np.float64))
         m.load_state_dict(meta, arrays)
         return m
