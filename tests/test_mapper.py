@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from h3edge.eval.metrics import psnr
-from h3edge.geometry.camera import Intrinsics, look_at, pixel_rays_world
+from h3edge.geometry.camera import PIXEL_CENTER_OFFSET, Intrinsics, look_at, pixel_rays_world
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
@@ -182,3 +182,31 @@ def test_ray_tables_are_a_bounded_counted_cache(tiny_scene):
         assert m.process(f).mapped
     assert len(m._rays_cache) == RAY_TABLES
     assert m.stats()["memory_bytes"]["ray_tables"] == RAY_TABLES * 12 * f.intrinsics.width * f.intrinsics.height
+
+
+def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
+    """``train.surface_color_points``: extra pixels back-projected with their measured depth; each
+    point projects back onto its pixel at that depth and carries that pixel's colour; the step
+    trains the colour field there."""
+    from h3edge.mapping.trainer import TrainConfig, surface_color_loss
+
+    seq = ReplicaSequence(tiny_scene)
+    settings = dataclasses.replace(LEAN, train=TrainConfig(surface_color_points=600))
+    m = Mapper(settings)
+    f = seq[0]
+    assert m.process(f).mapped
+    current, _ = m._prepare(f)
+    rays = m._sample_rays([current, m.keyframes.keyframes[0].payload])
+    assert rays.surface_points.shape == (600, 3) and rays.surface_color.shape == (600, 3)
+    w2c = np.linalg.inv(f.pose)
+    cam = rays.surface_points.numpy().astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    k = f.intrinsics
+    u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
+    v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
+    depth = current.depth[v, u]
+    assert (depth > 0).all() and np.allclose(cam[:, 2], depth, atol=2e-4)  # stored depth: uint16 steps
+    assert np.allclose(rays.surface_color.numpy() * 255, current.color[v, u], atol=0.5)
+    before = float(surface_color_loss(m.field, m.voxels, rays))
+    for _ in range(30):
+        m._step(rays, "frame")
+    assert float(surface_color_loss(m.field, m.voxels, rays)) < 0.7 * before

@@ -61,6 +61,11 @@ def test_keyframes_keep_whole_images(half_mapped):
     # and the depth image pooled to 4 x 4 blocks, for the cross-view free-space test (train.carve_behind)
     assert kf.pooled is not None and kf.pooled.depth.shape == (h // 4, w // 4)
     assert kf.nbytes <= 5 * h * w + 4 * (h // 4) * (w // 4) + 2 * 8 * 16  # images, pooled depth, poses
+    # read-only, and the captured state holds the arrays themselves (no second copy of the keyframes)
+    assert not kf.color.flags.writeable and not kf.depth_q.flags.writeable
+    _, arrays = m.state_dict()
+    last = len(m.keyframes.keyframes) - 1
+    assert arrays[f"kf/color/{last}"] is kf.color and arrays[f"kf/depth_q/{last}"] is kf.depth_q
     restored = Mapper.from_state_dict(SETTINGS, *m.state_dict()).keyframes.keyframes[-1].payload
     assert np.array_equal(restored.color, kf.color) and np.array_equal(restored.depth_q, kf.depth_q)
     assert restored.depth_unit == kf.depth_unit and restored.n_valid == kf.n_valid
@@ -127,7 +132,7 @@ def test_state_from_before_whole_image_keyframes_keeps_the_map(half_mapped):
     mapping goes on and rebuilds the set. An unknown version is refused."""
     seq, m = half_mapped
     meta, arrays = m.state_dict()
-    old = {k: v for k, v in arrays.items() if not k.startswith(("kf/color", "kf/depth_q"))}
+    old = {k: v for k, v in arrays.items() if not k.startswith(("kf/color/", "kf/depth_q/"))}
     n = len(m.keyframes.keyframes)
     old.update({"kf/pix": np.zeros(5 * n, np.int32), "kf/pix_offsets": np.arange(0, 5 * n + 1, 5),
                 "kf/rgb": np.zeros((5 * n, 3), np.uint8), "kf/rgb_offsets": np.arange(0, 5 * n + 1, 5),

@@ -25,7 +25,6 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
 from h3edge.mapping.visibility import PooledDepth
 
-
 DEPTH_LEVELS = 65535  # uint16 steps a stored depth image is quantised to (0 = invalid)
 
 
@@ -61,8 +60,16 @@ class StoredFrame:
         unit = top / DEPTH_LEVELS if top > 0 else 1.0
         q = np.rint(depth / np.float32(unit)).astype(np.uint16)
         q[(depth > 0) & (q == 0)] = 1  # a valid depth stays valid
-        return cls(np.ascontiguousarray(color, np.uint8), q, unit, int(np.count_nonzero(q)),
-                   np.asarray(pose, np.float64), intrinsics, pooled)
+        return cls.frozen(np.array(color, np.uint8), q, unit, np.asarray(pose, np.float64), intrinsics, pooled)
+
+    @classmethod
+    def frozen(cls, color: np.ndarray, depth_q: np.ndarray, depth_unit: float, pose: np.ndarray,
+               intrinsics: Intrinsics, pooled: PooledDepth | None = None) -> StoredFrame:
+        """Take ``color`` and ``depth_q`` as they are and make them read-only: a stored frame never
+        changes, so a checkpoint capture can hold the arrays themselves."""
+        color, depth_q = np.ascontiguousarray(color), np.ascontiguousarray(depth_q)
+        color.flags.writeable = depth_q.flags.writeable = False
+        return cls(color, depth_q, depth_unit, int(np.count_nonzero(depth_q)), pose, intrinsics, pooled)
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``n`` pixels drawn uniformly, with replacement, among the valid ones (rejection from all
@@ -131,8 +138,10 @@ class KeyframeSet:
     evicted: int = 0
 
     def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """(meta, arrays): every keyframe (its voxels, scores and stored images, flattened and
-        concatenated with offsets), the selection round's observed voxels and the policy's counters."""
+        """(meta, arrays): every keyframe (its voxels and scores concatenated with offsets; its
+        stored images as ``color/<i>`` and ``depth_q/<i>``, the read-only arrays themselves, not
+        copies: a checkpoint capture holds no second copy of the keyframes), the selection round's
+        observed voxels and the policy's counters."""
         kfs = self.keyframes
         meta = {"keyframes": [{"frame_id": k.frame_id, "selected": k.selected_this_round,
                                "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist(),
@@ -144,13 +153,13 @@ class KeyframeSet:
         arrays: dict[str, np.ndarray] = {}
         for name, get, dt, w in (("voxels", lambda k: k.voxels, np.int64, ()),
                                  ("scores", lambda k: k.scores, np.float64, ()),
-                                 ("color", lambda k: k.payload.color.reshape(-1), np.uint8, ()),
-                                 ("depth_q", lambda k: k.payload.depth_q.reshape(-1), np.uint16, ()),
                                  ("pooled", lambda k: np.zeros(0, np.float32) if k.payload.pooled is None
                                   else k.payload.pooled.depth.reshape(-1), np.float32, ())):
             parts = [get(k) for k in kfs]
             arrays[f"{name}_offsets"] = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
             arrays[name] = np.concatenate(parts).astype(dt) if parts else np.zeros((0, *w), dt)
+        for i, k in enumerate(kfs):
+            arrays[f"color/{i}"], arrays[f"depth_q/{i}"] = k.payload.color, k.payload.depth_q
         arrays["observed"] = self.observed.copy()
         return meta, arrays
 
@@ -159,7 +168,7 @@ class KeyframeSet:
             data, off = arrays[name], arrays[f"{name}_offsets"]
             return [data[off[i]:off[i + 1]] for i in range(len(off) - 1)]
 
-        names = ("voxels", "scores", "color", "depth_q") + (("pooled",) if "pooled" in arrays else ())
+        names = ("voxels", "scores") + (("pooled",) if "pooled" in arrays else ())
         parts = {n: split(n) for n in names}
 
         def pooled(i: int, km: dict) -> PooledDepth | None:
@@ -171,10 +180,12 @@ class KeyframeSet:
 
         def stored(i: int, km: dict) -> StoredFrame:
             h, w = km["image"]
-            depth_q = parts["depth_q"][i].reshape(h, w)
-            return StoredFrame(parts["color"][i].reshape(h, w, 3), depth_q, float(km["depth_unit"]),
-                               int(np.count_nonzero(depth_q)), np.asarray(km["pose"], np.float64),
-                               Intrinsics(**km["intrinsics"]), pooled(i, km))
+            color = np.asarray(arrays[f"color/{i}"], np.uint8)
+            depth_q = np.asarray(arrays[f"depth_q/{i}"], np.uint16)
+            if color.shape != (h, w, 3) or depth_q.shape != (h, w):
+                raise ValueError(f"keyframe {i}: stored images {color.shape} / {depth_q.shape}, expected {h}x{w}")
+            return StoredFrame.frozen(color, depth_q, float(km["depth_unit"]), np.asarray(km["pose"], np.float64),
+                                      Intrinsics(**km["intrinsics"]), pooled(i, km))
 
         self.keyframes = [Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i], stored(i, km),
                                    km["selected"])

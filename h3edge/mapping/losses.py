@@ -26,6 +26,7 @@ class LossWeights:
     depth: float = 1.0  # alpha_d
     sdf: float = 50000.0  # alpha_sdf
     free_space: float = 10.0  # alpha_fs
+    surface_rgb: float = 0.5  # surface colour points (TrainConfig.surface_color_points; not in the paper)
     s3im: bool = True
     s3im_kernel: int = 4
     s3im_stride: int = 4

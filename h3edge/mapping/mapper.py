@@ -345,19 +345,29 @@ class Mapper:
                                          classes, self.patterns.dirs, self.patterns.n_dirs)
 
     def _sample_rays(self, frames: list[ImageFrame | StoredFrame]) -> RayBatch:
+        """Rays drawn evenly from ``frames`` (``rays_per_iteration``), and with
+        ``train.surface_color_points`` as many more pixels per frame back-projected to their
+        measured surface points (:func:`~h3edge.mapping.trainer.surface_color_loss`)."""
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
-        o, d, z, c = [], [], [], []
+        n_surf = self.train_cfg.surface_color_points // len(frames)
+        o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
             pix, rgb, depth = f.draw(n_each, self.rng)
-            cam = self._camera_rays(f.intrinsics)[pix]
-            d.append(cam @ f.pose[:3, :3].T.astype(np.float32))
+            rot = f.pose[:3, :3].T.astype(np.float32)
+            cam = self._camera_rays(f.intrinsics)
+            d.append(cam[pix] @ rot)
             o.append(np.broadcast_to(f.pose[:3, 3].astype(np.float32), (n_each, 3)))
             z.append(depth)
             c.append(rgb)
+            if n_surf:
+                pix, rgb, depth = f.draw(n_surf, self.rng)
+                sp.append((cam[pix] * depth[:, None]) @ rot + f.pose[:3, 3].astype(np.float32))
+                sc.append(rgb)
         dev = self.device
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731
-        return RayBatch(t(o), t(d), t(z), t(c) / 255.0, views)
+        surface = (t(sp), t(sc) / 255.0) if sp else (None, None)
+        return RayBatch(t(o), t(d), t(z), t(c) / 255.0, views, *surface)
 
     # ---------------------------------------------------------------- queries
     def view(self) -> MapView:
