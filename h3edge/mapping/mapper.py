@@ -354,15 +354,15 @@ class Mapper:
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
             pix, rgb, depth = f.draw(n_each, self.rng)
-            rot = f.pose[:3, :3].T.astype(np.float32)
+            rot, origin = f.pose[:3, :3].T.astype(np.float32), f.pose[:3, 3].astype(np.float32)
             cam = self._camera_rays(f.intrinsics)
             d.append(cam[pix] @ rot)
-            o.append(np.broadcast_to(f.pose[:3, 3].astype(np.float32), (n_each, 3)))
+            o.append(np.broadcast_to(origin, (n_each, 3)))
             z.append(depth)
             c.append(rgb)
             if n_surf:
                 pix, rgb, depth = f.draw(n_surf, self.rng)
-                sp.append((cam[pix] * depth[:, None]) @ rot + f.pose[:3, 3].astype(np.float32))
+                sp.append((cam[pix] * depth[:, None]) @ rot + origin)
                 sc.append(rgb)
         dev = self.device
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731

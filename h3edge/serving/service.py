@@ -116,7 +116,7 @@ class MapService:
         if not self.plan["fits"]:
             log.warning("memory budget %d MB leaves little for keyframes: %s", cfg.memory_budget_mb, self.plan)
         kf = dataclasses.replace(settings.keyframes, max_bytes=min(
-            settings.keyframes.max_bytes or 1 << 62, max(self.plan["keyframes"], 8 * self.plan["keyframe_bytes"])))
+            settings.keyframes.max_bytes or 1 << 62, self.plan["keyframe_cap_bytes"]))
         self.settings = dataclasses.replace(settings, keyframes=kf)
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
