@@ -210,3 +210,39 @@ def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
     for _ in range(30):
         m._step(rays, "frame")
     assert float(surface_color_loss(m.field, m.voxels, rays)) < 0.7 * before
+
+
+def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
+    """``mapper.edge_rays``: that share of each frame's rays, keyframes' included, is drawn among the
+    far side of its depth edges (the background beside a silhouette); the rest uniformly."""
+    from h3edge.geometry.depth_edges import far_side_of_edges
+
+    seq = ReplicaSequence(tiny_scene)
+    settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.5, edge_rays_radius=4))
+    m = Mapper(settings)
+    f = seq[0]
+    assert m.process(f).mapped
+    current, _ = m._prepare(f)
+    stored = m.keyframes.keyframes[0].payload
+    far = far_side_of_edges(current.depth, 4, settings.mapper.edge_jump).reshape(-1)
+    assert 0.001 < far.mean() < 0.5  # the scene has silhouettes (and, at 160x120, floors steep enough to count)
+    assert np.array_equal(stored.edge_pixels(4, settings.mapper.edge_jump), np.flatnonzero(far))
+    rays = m._sample_rays([current, stored])
+    w2c = np.linalg.inv(f.pose)
+    cam = (rays.origins + rays.dirs * rays.depth[:, None]).numpy().astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    k = f.intrinsics
+    u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
+    v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
+    on_far = far[v * k.width + u]
+    n = len(rays.depth)
+    expected = 0.5 + 0.5 * far.sum() / (current.depth > 0).sum()
+    assert abs(on_far.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / n), (on_far.mean(), expected)
+    assert np.allclose(rays.depth.numpy(), current.depth.reshape(-1)[v * k.width + u], atol=2e-4)
+    uniform = Mapper(LEAN)
+    assert uniform.process(f).mapped
+    plain = uniform._sample_rays([uniform._prepare(f)[0]])
+    cam = (plain.origins + plain.dirs * plain.depth[:, None]).numpy().astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
+    v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
+    share = far.sum() / (current.depth > 0).sum()  # the paper's uniform draw: edges at their share
+    assert abs(far[v * k.width + u].mean() - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth))

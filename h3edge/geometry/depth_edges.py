@@ -1,15 +1,18 @@
-"""Depth-edge pixels a range sensor measures wrong: the near side of every depth discontinuity.
+"""Depth-edge pixels: the near side of every depth discontinuity (measured wrong) and its far side.
 
 Structured-light and time-of-flight sensors blur depth edges: pixels along a silhouette take the
 foreground's depth a few pixels past the object's true outline, or a depth between foreground and
 background (mixed, "flying" pixels). Mapped, both put surface where other views see free space.
 :func:`near_side_of_edges` marks the pixels that have a valid neighbour markedly farther within a
 small window: the foreground's rim and the flying pixels, never the background beside them, whose
-rays still carve the free space along the silhouette.
+rays still carve the free space along the silhouette. :func:`far_side_of_edges` marks that
+background: the pixels whose rays pass just beside a foreground outline, where a map's surface
+bulges into free space unless training rays carve it.
 
 Usage::
 
     depth = np.where(near_side_of_edges(depth, radius=2, jump=0.05), 0.0, depth)
+    beside = np.flatnonzero(far_side_of_edges(depth, radius=8, jump=0.05))
 """
 
 from __future__ import annotations
@@ -26,3 +29,19 @@ def near_side_of_edges(depth: np.ndarray, radius: int, jump: float) -> np.ndarra
         return np.zeros(d.shape, bool)
     farthest = cv2.dilate(d, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
     return (d > 0) & (farthest > d * (1.0 + jump))
+
+
+def far_side_of_edges(depth: np.ndarray, radius: int, jump: float, step: int = 3) -> np.ndarray:
+    """(H, W) bool: valid pixels of ``depth`` (m, 0 = invalid) within ``radius`` pixels (a square
+    window) of a foreground outline and farther than it by more than ``jump`` times its depth: the
+    background just beside a silhouette, whose rays pass the outline (and see through the gaps of a
+    slatted or thin object). An outline pixel is a valid pixel with a neighbour within ``step``
+    pixels farther by ``jump`` (:func:`near_side_of_edges`: a discontinuity, reached across the
+    rim :attr:`MapperConfig.edge_radius` leaves out), so a surface seen at a grazing angle, whose
+    depth grows steadily across the window, is not taken for an edge."""
+    d = np.asarray(depth, np.float32)
+    if radius <= 0:
+        return np.zeros(d.shape, bool)
+    outline = np.where(near_side_of_edges(d, step, jump), d, np.float32(1e30))  # 1e30: no outline
+    nearest = cv2.erode(outline, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    return (d > 0) & (nearest * np.float32(1.0 + jump) < d)

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
+from h3edge.geometry.depth_edges import far_side_of_edges
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
 from h3edge.mapping.visibility import PooledDepth
 
@@ -50,6 +51,9 @@ class StoredFrame:
     pose: np.ndarray
     intrinsics: Intrinsics
     pooled: PooledDepth | None = None  # the whole depth image, pooled (``train.carve_behind``)
+    # flat indices of the far side of the depth edges, per (radius, jump): computed on first use
+    # (:meth:`edge_pixels`), not stored in checkpoints
+    _edges: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def of(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics,
@@ -85,8 +89,20 @@ class StoredFrame:
             cand = cand[flat[cand] > 0][:need]
             got.append(cand)
             need -= len(cand)
-        pix = np.concatenate(got)
-        return pix, self.color.reshape(-1, 3)[pix], flat[pix].astype(np.float32) * np.float32(self.depth_unit)
+        return self.at(np.concatenate(got))
+
+    def at(self, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Flat pixel indices ``pix`` with their colours (uint8 (n, 3)) and depths (float32 metres)."""
+        return pix, self.color.reshape(-1, 3)[pix], self.depth_q.reshape(-1)[pix].astype(np.float32) * np.float32(
+            self.depth_unit)
+
+    def edge_pixels(self, radius: int, jump: float) -> np.ndarray:
+        """Flat indices (int32) of the valid pixels on the far side of a depth edge
+        (:func:`~h3edge.geometry.depth_edges.far_side_of_edges`), computed once per setting."""
+        key = (int(radius), float(jump))
+        if key not in self._edges:
+            self._edges[key] = np.flatnonzero(far_side_of_edges(self.depth, radius, jump)).astype(np.int32)
+        return self._edges[key]
 
     @property
     def depth(self) -> np.ndarray:
@@ -96,7 +112,8 @@ class StoredFrame:
     @property
     def nbytes(self) -> int:
         pooled = self.pooled.nbytes if self.pooled is not None else 0
-        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + pooled
+        edges = sum(e.nbytes for e in self._edges.values())
+        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + pooled + edges
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:

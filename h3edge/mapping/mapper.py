@@ -30,7 +30,7 @@ import torch
 import trimesh
 
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
-from h3edge.geometry.depth_edges import near_side_of_edges
+from h3edge.geometry.depth_edges import far_side_of_edges, near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
@@ -76,6 +76,12 @@ class MapperConfig:
     # in front 3.8 -> 3.0 %, Depth L1 -9 %; sim Depth L1 -11 %, PSNR +0.1 dB (docs/silhouettes.md)
     edge_radius: int = 2
     edge_jump: float = 0.05
+    # share of each frame's training rays drawn among the far side of its depth edges (valid pixels
+    # with a neighbour within edge_rays_radius pixels nearer by more than edge_jump): the rays that
+    # pass beside a silhouette or through a gap and carve the free space there (0: every ray drawn
+    # uniformly among the valid pixels, the paper's)
+    edge_rays: float = 0.0
+    edge_rays_radius: int = 8
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
     # mesh only cubes whose 8 lattice points each have at least this share of their trilinear
@@ -123,17 +129,30 @@ class ImageFrame:
     intrinsics: Intrinsics
     pix: np.ndarray  # int32 flat indices of the valid-depth pixels
     pooled: PooledDepth | None = None  # the depth pooled for ``train.carve_behind``, once per frame
+    _edges: dict = dataclasses.field(default_factory=dict, repr=False)  # as StoredFrame's
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``n`` valid pixels drawn uniformly with replacement: flat indices, colours, depths (as
         :meth:`StoredFrame.draw`)."""
-        p = self.pix[rng.integers(0, len(self.pix), n)]
-        return p, self.color.reshape(-1, 3)[p], self.depth.reshape(-1)[p]
+        return self.at(self.pix[rng.integers(0, len(self.pix), n)])
+
+    def at(self, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`StoredFrame.at`."""
+        return pix, self.color.reshape(-1, 3)[pix], self.depth.reshape(-1)[pix]
+
+    def edge_pixels(self, radius: int, jump: float) -> np.ndarray:
+        """As :meth:`StoredFrame.edge_pixels`."""
+        key = (int(radius), float(jump))
+        if key not in self._edges:
+            self._edges[key] = np.flatnonzero(far_side_of_edges(self.depth, radius, jump)).astype(np.int32)
+        return self._edges[key]
 
     def store(self) -> StoredFrame:
-        """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`) and the
-        pooled depth."""
-        return StoredFrame.of(self.color, self.depth, self.pose, self.intrinsics, self.pooled)
+        """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`), the
+        pooled depth and the edge pixels found so far."""
+        kept = StoredFrame.of(self.color, self.depth, self.pose, self.intrinsics, self.pooled)
+        kept._edges.update(self._edges)
+        return kept
 
 
 def resolve_device(name: str) -> torch.device:
@@ -349,11 +368,17 @@ class Mapper:
         ``train.surface_color_points`` as many more pixels per frame back-projected to their
         measured surface points (:func:`~h3edge.mapping.trainer.surface_color_loss`)."""
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
+        n_edge = int(round(self.cfg.edge_rays * n_each))
         n_surf = self.train_cfg.surface_color_points // len(frames)
         o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            pix, rgb, depth = f.draw(n_each, self.rng)
+            edges = f.edge_pixels(self.cfg.edge_rays_radius, self.cfg.edge_jump) if n_edge else np.zeros(0, np.int32)
+            if len(edges):
+                parts = [f.draw(n_each - n_edge, self.rng), f.at(edges[self.rng.integers(0, len(edges), n_edge)])]
+                pix, rgb, depth = (np.concatenate(a) for a in zip(*parts))
+            else:
+                pix, rgb, depth = f.draw(n_each, self.rng)
             rot, origin = f.pose[:3, :3].T.astype(np.float32), f.pose[:3, 3].astype(np.float32)
             cam = self._camera_rays(f.intrinsics)
             d.append(cam[pix] @ rot)
