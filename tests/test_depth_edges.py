@@ -28,4 +28,6 @@ def test_far_side_is_the_background_beside_the_outline():
     assert not m[:, :8].any()  # never the foreground nor the invalid rim
     assert not m[:, 12:].any()  # the slope's depth grows 5 % within a few pixels, but it has no outline
     assert not far_side_of_edges(d, radius=0, jump=0.05).any()
+    both = far_side_of_edges(d, radius=6, jump=0.05, near_too=True)
+    assert both[:, :6].all() and both[:, 8:12].all() and not both[:, 6:8].any() and not both[:, 12:].any()
     assert not far_side_of_edges(np.zeros((5, 5), np.float32), radius=2, jump=0.05).any()

@@ -31,17 +31,21 @@ def near_side_of_edges(depth: np.ndarray, radius: int, jump: float) -> np.ndarra
     return (d > 0) & (farthest > d * (1.0 + jump))
 
 
-def far_side_of_edges(depth: np.ndarray, radius: int, jump: float, step: int = 3) -> np.ndarray:
+def far_side_of_edges(depth: np.ndarray, radius: int, jump: float, step: int = 3, near_too: bool = False) -> np.ndarray:
     """(H, W) bool: valid pixels of ``depth`` (m, 0 = invalid) within ``radius`` pixels (a square
     window) of a foreground outline and farther than it by more than ``jump`` times its depth: the
     background just beside a silhouette, whose rays pass the outline (and see through the gaps of a
     slatted or thin object). An outline pixel is a valid pixel with a neighbour within ``step``
     pixels farther by ``jump`` (:func:`near_side_of_edges`: a discontinuity, reached across the
     rim :attr:`MapperConfig.edge_radius` leaves out), so a surface seen at a grazing angle, whose
-    depth grows steadily across the window, is not taken for an edge."""
+    depth grows steadily across the window, is not taken for an edge. ``near_too``: the foreground
+    within ``radius`` of its outline as well (both sides of every edge)."""
     d = np.asarray(depth, np.float32)
     if radius <= 0:
         return np.zeros(d.shape, bool)
-    outline = np.where(near_side_of_edges(d, step, jump), d, np.float32(1e30))  # 1e30: no outline
-    nearest = cv2.erode(outline, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    on_outline = near_side_of_edges(d, step, jump)
+    window = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    if near_too:
+        return (d > 0) & (cv2.dilate(on_outline.astype(np.uint8), window) > 0)
+    nearest = cv2.erode(np.where(on_outline, d, np.float32(1e30)), window)  # 1e30: no outline near
     return (d > 0) & (nearest * np.float32(1.0 + jump) < d)

@@ -96,13 +96,9 @@ class StoredFrame:
         return pix, self.color.reshape(-1, 3)[pix], self.depth_q.reshape(-1)[pix].astype(np.float32) * np.float32(
             self.depth_unit)
 
-    def edge_pixels(self, radius: int, jump: float) -> np.ndarray:
-        """Flat indices (int32) of the valid pixels on the far side of a depth edge
-        (:func:`~h3edge.geometry.depth_edges.far_side_of_edges`), computed once per setting."""
-        key = (int(radius), float(jump))
-        if key not in self._edges:
-            self._edges[key] = np.flatnonzero(far_side_of_edges(self.depth, radius, jump)).astype(np.int32)
-        return self._edges[key]
+    def edge_pixels(self, radius: int, jump: float, near_too: bool = False) -> np.ndarray:
+        """As :func:`edge_pixels` on the stored depth, computed once per setting."""
+        return edge_pixels(self._edges, self.depth, radius, jump, near_too)
 
     @property
     def depth(self) -> np.ndarray:
@@ -114,6 +110,16 @@ class StoredFrame:
         pooled = self.pooled.nbytes if self.pooled is not None else 0
         edges = sum(e.nbytes for e in self._edges.values())
         return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + pooled + edges
+
+
+def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, near_too: bool) -> np.ndarray:
+    """Flat indices (int32) of the valid pixels of ``depth`` beside a depth edge
+    (:func:`~h3edge.geometry.depth_edges.far_side_of_edges`), taken from / kept in ``cache`` (a
+    frame's, keyed by the setting)."""
+    key = (int(radius), float(jump), bool(near_too))
+    if key not in cache:
+        cache[key] = np.flatnonzero(far_side_of_edges(depth, radius, jump, near_too=near_too)).astype(np.int32)
+    return cache[key]
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:

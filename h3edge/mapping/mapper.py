@@ -30,13 +30,13 @@ import torch
 import trimesh
 
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
-from h3edge.geometry.depth_edges import far_side_of_edges, near_side_of_edges
+from h3edge.geometry.depth_edges import near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
 from h3edge.mapping.gradient import color_gradient
 from h3edge.mapping.hashgrid import HashGrid
-from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, StoredFrame, gradient_scores
+from h3edge.mapping.keyframes import KeyframeConfig, KeyframeSet, StoredFrame, edge_pixels, gradient_scores
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
@@ -82,6 +82,7 @@ class MapperConfig:
     # uniformly among the valid pixels, the paper's)
     edge_rays: float = 0.0
     edge_rays_radius: int = 8
+    edge_rays_near_too: bool = False  # also the foreground within edge_rays_radius of its outline
     observe_stride: int = 4  # pixel stride when listing the voxels a frame observes (keyframe policy)
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
     # mesh only cubes whose 8 lattice points each have at least this share of their trilinear
@@ -140,12 +141,9 @@ class ImageFrame:
         """As :meth:`StoredFrame.at`."""
         return pix, self.color.reshape(-1, 3)[pix], self.depth.reshape(-1)[pix]
 
-    def edge_pixels(self, radius: int, jump: float) -> np.ndarray:
+    def edge_pixels(self, radius: int, jump: float, near_too: bool = False) -> np.ndarray:
         """As :meth:`StoredFrame.edge_pixels`."""
-        key = (int(radius), float(jump))
-        if key not in self._edges:
-            self._edges[key] = np.flatnonzero(far_side_of_edges(self.depth, radius, jump)).astype(np.int32)
-        return self._edges[key]
+        return edge_pixels(self._edges, self.depth, radius, jump, near_too)
 
     def store(self) -> StoredFrame:
         """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`), the
@@ -373,7 +371,8 @@ class Mapper:
         o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            edges = f.edge_pixels(self.cfg.edge_rays_radius, self.cfg.edge_jump) if n_edge else np.zeros(0, np.int32)
+            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.cfg.edge_jump, self.cfg.edge_rays_near_too)
+                     if n_edge else np.zeros(0, np.int32))
             if len(edges):
                 parts = [f.draw(n_each - n_edge, self.rng), f.at(edges[self.rng.integers(0, len(edges), n_edge)])]
                 pix, rgb, depth = (np.concatenate(a) for a in zip(*parts))
