@@ -31,3 +31,31 @@ def test_far_side_is_the_background_beside_the_outline():
     both = far_side_of_edges(d, radius=6, jump=0.05, near_too=True)
     assert both[:, :6].all() and both[:, 8:12].all() and not both[:, 6:8].any() and not both[:, 12:].any()
     assert not far_side_of_edges(np.zeros((5, 5), np.float32), radius=2, jump=0.05).any()
+
+
+def _tilted_plane(w: int, h: int, focal: float, tilt_deg: float) -> np.ndarray:
+    """z-depth of a plane 1 m from the camera whose normal is tilted ``tilt_deg`` from the optical
+    axis (a floor or ceiling seen at incidences up to ~90 degrees); 0 where the rays miss it."""
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(u - w / 2) / focal, (v - h / 2) / focal, np.ones_like(u)], -1)
+    a = np.radians(tilt_deg)
+    z = 1.0 / (rays @ np.array([0.0, np.sin(a), np.cos(a)]))
+    return np.where((z > 0) & (z < 10), z, 0).astype(np.float32)
+
+
+def test_a_surface_at_a_grazing_angle_is_no_edge_at_any_resolution():
+    """At 160x120 with a 95 px focal length a 5 % jump over 2 px is any surface beyond ~67 degrees of
+    incidence: a third of a tilted plane went missing from the mapper's input. The jump raised to
+    what an 80-degree surface gives over the window keeps it, at low and at high resolution."""
+    from h3edge.geometry.depth_edges import discontinuity_jump
+
+    for w, h, focal in ((160, 120, 95.0), (640, 480, 525.0)):
+        z = _tilted_plane(w, h, focal, 60.0)
+        jump = discontinuity_jump(0.05, 2, focal, 80.0)
+        assert near_side_of_edges(z, 2, jump).sum() < 0.08 * (z > 0).sum(), (w, jump)  # the rows beyond 80 degrees
+        step = z.copy()
+        step[: h // 2] *= 0.7  # a real edge, 30 % nearer: still found
+        assert near_side_of_edges(step, 2, jump)[h // 2 - 2:h // 2].all()
+    low = _tilted_plane(160, 120, 95.0, 60.0)
+    assert near_side_of_edges(low, 2, 0.05).sum() > 0.25 * (low > 0).sum()  # before: the 5 % everywhere
+    assert discontinuity_jump(0.05, 2, 525.0, 80.0) == 0.05  # Kinect frames: the 5 % as measured

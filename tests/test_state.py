@@ -55,7 +55,7 @@ def test_keyframes_keep_whole_images(half_mapped):
     h, w = kf.intrinsics.height, kf.intrinsics.width
     assert kf.color.shape == (h, w, 3) and np.array_equal(kf.color, frame.color)
     # the cleaned depth, quantised to uint16 steps of max depth / 65535
-    clean = m.clean_depth(frame.depth)
+    clean = m.clean_depth(frame.depth, frame.intrinsics)
     assert np.array_equal(kf.depth > 0, clean > 0) and kf.n_valid == np.count_nonzero(clean)
     assert np.abs(kf.depth - clean).max() <= kf.depth_unit / 2 + 1e-6 < 1e-4
     # and the depth image pooled to 4 x 4 blocks, for the cross-view free-space test (train.carve_behind)

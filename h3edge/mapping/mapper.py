@@ -30,7 +30,7 @@ import torch
 import trimesh
 
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
-from h3edge.geometry.depth_edges import near_side_of_edges
+from h3edge.geometry.depth_edges import discontinuity_jump, near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
@@ -49,6 +49,7 @@ from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
+EDGE_STEP = 3  # pixels within which an edge ray's outline jumps (far_side_of_edges' step: across edge_radius 2)
 STATE_VERSION = 2  # of Mapper.state_dict (2: keyframes keep whole images)
 # states this build still reads; from version 1 (keyframes kept a fixed pixel subset) the map is
 # taken and the keyframes are dropped: new frames rebuild the set
@@ -76,6 +77,11 @@ class MapperConfig:
     # in front 3.8 -> 3.0 %, Depth L1 -9 %; sim Depth L1 -11 %, PSNR +0.1 dB (docs/silhouettes.md)
     edge_radius: int = 2
     edge_jump: float = 0.05
+    # degrees of incidence up to which a surface's steady depth change is not an edge: at a wide
+    # pixel angle the jump is raised to match (:func:`~h3edge.geometry.depth_edges.discontinuity_jump`;
+    # 160x120 at 95 px focal: 5 % -> 12 %, which keeps the 32 % of a tiny room's pixels the 5 % test
+    # dropped; 640x480 Kinect or Replica frames keep 5 %)
+    edge_max_incidence: float = 80.0
     # share of each frame's training rays drawn among the far side of its depth edges (valid pixels
     # with a neighbour within edge_rays_radius pixels nearer by more than edge_jump): the rays that
     # pass beside a silhouette or through a gap and carve the free space there (0: every ray drawn
@@ -237,13 +243,20 @@ class Mapper:
                                        f"{self.last_timestamp:.6f} (out of order or duplicate)")
         return "", ""
 
-    def clean_depth(self, depth: np.ndarray) -> np.ndarray:
+    def clean_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """Valid depth in range, the near side of depth edges left out (``edge_radius``)."""
         d = np.asarray(depth, np.float32)
         ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
         d = np.where(ok, d, np.float32(0))
         if self.cfg.edge_radius > 0:
-            d[near_side_of_edges(d, self.cfg.edge_radius, self.cfg.edge_jump)] = 0
+            d[near_side_of_edges(d, self.cfg.edge_radius, self.edge_jump(intrinsics, self.cfg.edge_radius))] = 0
         return d
+
+    def edge_jump(self, intrinsics: Intrinsics, radius: int) -> float:
+        """The relative depth jump within ``radius`` pixels that is a depth edge in this camera
+        (``edge_jump``, raised for wide pixels: ``edge_max_incidence``)."""
+        return discontinuity_jump(self.cfg.edge_jump, radius, min(intrinsics.fx, intrinsics.fy),
+                                  self.cfg.edge_max_incidence)
 
     def _drop(self, frame: Frame, code: str, reason: str) -> FrameResult:
         self.dropped[code] = self.dropped.get(code, 0) + 1
@@ -289,7 +302,7 @@ class Mapper:
 
     def _prepare(self, frame: Frame) -> tuple[ImageFrame, np.ndarray]:
         """The frame with cleaned depth and its valid pixels, and its world points (H, W, 3)."""
-        depth = self.clean_depth(frame.depth)
+        depth = self.clean_depth(frame.depth, frame.intrinsics)
         pose = np.asarray(frame.pose, np.float64)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         t = self.train_cfg
@@ -371,8 +384,8 @@ class Mapper:
         o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.cfg.edge_jump, self.cfg.edge_rays_near_too)
-                     if n_edge else np.zeros(0, np.int32))
+            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, EDGE_STEP),
+                                   self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
             if len(edges):
                 parts = [f.draw(n_each - n_edge, self.rng), f.at(edges[self.rng.integers(0, len(edges), n_edge)])]
                 pix, rgb, depth = (np.concatenate(a) for a in zip(*parts))
