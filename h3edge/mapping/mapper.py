@@ -99,6 +99,12 @@ class MapperConfig:
     train_between_frames: bool = True
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.edge_rays <= 1.0:
+            raise ValueError(f"edge_rays is a share of the rays, in [0, 1], got {self.edge_rays}")
+        if not 0.0 <= self.edge_max_incidence < 90.0:
+            raise ValueError(f"edge_max_incidence must be in [0, 90) degrees, got {self.edge_max_incidence}")
+
 
 @dataclass(frozen=True)
 class MapSettings:
