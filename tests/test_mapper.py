@@ -229,21 +229,24 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     assert 0.001 < far.mean() < 0.2  # the scene has silhouettes, and they are a small part of the view
     assert np.array_equal(stored.edge_pixels(4, jump), np.flatnonzero(far))
     rays = m._sample_rays([current, stored])
+    pix = _ray_pixels(rays, f)
+    on_far = far[pix]
+    n = len(rays.depth)
+    expected = 0.5 + 0.5 * far.sum() / (current.depth > 0).sum()
+    assert abs(on_far.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / n), (on_far.mean(), expected)
+    assert np.allclose(rays.depth.numpy(), current.depth.reshape(-1)[pix], atol=2e-4)
+    uniform = Mapper(LEAN)
+    assert uniform.process(f).mapped
+    plain = uniform._sample_rays([uniform._prepare(f)[0]])
+    share = far.sum() / (current.depth > 0).sum()  # the paper's uniform draw: edges at their share
+    assert abs(far[_ray_pixels(plain, f)].mean() - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth))
+
+
+def _ray_pixels(rays, f) -> np.ndarray:
+    """Flat pixel index in frame ``f`` of each ray's measured surface point."""
     w2c = np.linalg.inv(f.pose)
     cam = (rays.origins + rays.dirs * rays.depth[:, None]).numpy().astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
     k = f.intrinsics
     u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
     v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
-    on_far = far[v * k.width + u]
-    n = len(rays.depth)
-    expected = 0.5 + 0.5 * far.sum() / (current.depth > 0).sum()
-    assert abs(on_far.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / n), (on_far.mean(), expected)
-    assert np.allclose(rays.depth.numpy(), current.depth.reshape(-1)[v * k.width + u], atol=2e-4)
-    uniform = Mapper(LEAN)
-    assert uniform.process(f).mapped
-    plain = uniform._sample_rays([uniform._prepare(f)[0]])
-    cam = (plain.origins + plain.dirs * plain.depth[:, None]).numpy().astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
-    u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
-    v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
-    share = far.sum() / (current.depth > 0).sum()  # the paper's uniform draw: edges at their share
-    assert abs(far[v * k.width + u].mean() - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth))
+    return v * k.width + u

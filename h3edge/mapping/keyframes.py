@@ -51,7 +51,7 @@ class StoredFrame:
     pose: np.ndarray
     intrinsics: Intrinsics
     pooled: PooledDepth | None = None  # the whole depth image, pooled (``train.carve_behind``)
-    # flat indices of the far side of the depth edges, per (radius, jump): computed on first use
+    # flat indices of the far side of the depth edges, per setting: computed on first use
     # (:meth:`edge_pixels`), not stored in checkpoints
     _edges: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -96,9 +96,9 @@ class StoredFrame:
         return pix, self.color.reshape(-1, 3)[pix], self.depth_q.reshape(-1)[pix].astype(np.float32) * np.float32(
             self.depth_unit)
 
-    def edge_pixels(self, radius: int, jump: float, near_too: bool = False) -> np.ndarray:
+    def edge_pixels(self, radius: int, jump: float, step: int = 3, near_too: bool = False) -> np.ndarray:
         """As :func:`edge_pixels` on the stored depth, computed once per setting."""
-        return edge_pixels(self._edges, self.depth, radius, jump, near_too)
+        return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
     @property
     def depth(self) -> np.ndarray:
@@ -112,13 +112,13 @@ class StoredFrame:
         return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + pooled + edges
 
 
-def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, near_too: bool) -> np.ndarray:
+def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: int, near_too: bool) -> np.ndarray:
     """Flat indices (int32) of the valid pixels of ``depth`` beside a depth edge
     (:func:`~h3edge.geometry.depth_edges.far_side_of_edges`), taken from / kept in ``cache`` (a
     frame's, keyed by the setting)."""
-    key = (int(radius), float(jump), bool(near_too))
+    key = (int(radius), float(jump), int(step), bool(near_too))
     if key not in cache:
-        cache[key] = np.flatnonzero(far_side_of_edges(depth, radius, jump, near_too=near_too)).astype(np.int32)
+        cache[key] = np.flatnonzero(far_side_of_edges(depth, radius, jump, step, near_too)).astype(np.int32)
     return cache[key]
 
 

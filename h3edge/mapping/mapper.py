@@ -49,7 +49,6 @@ from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 RAY_TABLES = 4  # camera ray tables kept (keyframes from a few cameras / intrinsics)
-EDGE_STEP = 3  # pixels within which an edge ray's outline jumps (far_side_of_edges' step: across edge_radius 2)
 STATE_VERSION = 2  # of Mapper.state_dict (2: keyframes keep whole images)
 # states this build still reads; from version 1 (keyframes kept a fixed pixel subset) the map is
 # taken and the keyframes are dropped: new frames rebuild the set
@@ -153,9 +152,9 @@ class ImageFrame:
         """As :meth:`StoredFrame.at`."""
         return pix, self.color.reshape(-1, 3)[pix], self.depth.reshape(-1)[pix]
 
-    def edge_pixels(self, radius: int, jump: float, near_too: bool = False) -> np.ndarray:
+    def edge_pixels(self, radius: int, jump: float, step: int = 3, near_too: bool = False) -> np.ndarray:
         """As :meth:`StoredFrame.edge_pixels`."""
-        return edge_pixels(self._edges, self.depth, radius, jump, near_too)
+        return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
     def store(self) -> StoredFrame:
         """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`), the
@@ -390,7 +389,8 @@ class Mapper:
         o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
         for f in frames:
-            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, EDGE_STEP),
+            step = self.cfg.edge_radius + 1  # an outline's jump reaches across the rim clean_depth left out
+            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
                                    self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
             if len(edges):
                 parts = [f.draw(n_each - n_edge, self.rng), f.at(edges[self.rng.integers(0, len(edges), n_edge)])]
