@@ -133,3 +133,22 @@ def test_sdf_targets_end_where_the_band_behind_ends():
     _, short = free_space_and_sdf(pred, d, gt, mask, TR, surface_aware=False, behind=0.02 / TR)
     assert deep.item() > 0
     assert short.item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_window_crossing_is_the_first_sign_change_between_valid_samples():
+    """The first + to - change between neighbouring valid samples, linearly interpolated; none on a
+    ray without one, and none across a masked-out sample."""
+    from h3edge.mapping.raymarch import window_crossing
+
+    t = torch.linspace(1.0, 1.08, 9)[None].repeat(4, 1)
+    sdf = torch.tensor([[0.9, 0.5, 0.3, -0.3, -0.9, 0.4, -0.2, -0.5, -0.6],   # first crossing at 1.025
+                        [0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1],       # none
+                        [-0.5, -0.4, 0.2, 0.1, -0.1, -0.2, -0.3, -0.4, -0.5],  # - to + is no surface: 1.035
+                        [0.9, 0.5, 0.3, -0.3, -0.9, 0.4, -0.2, -0.5, -0.6]])
+    mask = torch.ones_like(sdf, dtype=torch.bool)
+    mask[3, 3] = False  # the first change straddles a sample outside the voxels: the next one counts
+    tz, found = window_crossing(sdf, t, mask)
+    assert found.tolist() == [True, False, True, True]
+    assert tz[0].item() == pytest.approx(1.025, abs=1e-6)
+    assert tz[2].item() == pytest.approx(1.035, abs=1e-6)
+    assert tz[3].item() == pytest.approx(1.05 + 0.01 * 0.4 / 0.6, abs=1e-6)
