@@ -140,3 +140,24 @@ def test_mesh_to_mesh_both_directions():
     assert same["a_to_b_mean"] < 0.01 and same["a_to_b_far_share"] == 0.0
     shifted = mesh_to_mesh(b, a, n=20000)
     assert 0.2 < shifted["a_to_b_far_share"] < 0.45  # most of top and bottom are 10 cm off
+
+
+def test_colour_regions_split_the_valid_pixels():
+    """The colour-error regions are disjoint and cover the valid pixels: the band follows the depth
+    step, a wrong render off the band is ``depth_off``, texture is where the colour changes."""
+    from h3edge.bench.color_regions import regions
+
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[:, :32] = 1.0  # a step at column 32
+    depth[0, :] = 0.0  # invalid row
+    color = np.full((48, 64, 3), 128, np.uint8)
+    color[30:, 50:] = np.indices((18, 14)).sum(0)[..., None] % 2 * 255  # a checkerboard off the step
+    rendered = depth.copy()
+    rendered[10, 5] += 0.05
+    m = regions(color, depth, rendered)
+    stack = np.stack(list(m.values()))
+    assert (stack.sum(0) == (depth > 0)).all()  # disjoint, and exactly the valid pixels
+    cols = np.flatnonzero(m["edge"].any(0))
+    assert cols.min() >= 25 and cols.max() <= 37 and m["edge"][1:, 31].all() and m["edge"][1:, 32].all()
+    assert m["depth_off"][10, 5] and m["depth_off"].sum() == 1
+    assert m["texture"][30:, 50:].mean() > 0.5 and not m["texture"][1:20, :20].any()

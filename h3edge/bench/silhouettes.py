@@ -31,7 +31,7 @@ from h3edge.config import apply_overrides, load_profile
 from h3edge.geometry.camera import pixel_rays_world
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
-from h3edge.mapping.raymarch import PriorLookup
+from h3edge.mapping.raymarch import PriorLookup, window_crossing
 
 log = logging.getLogger(__name__)
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes_redkitchen_dev"
@@ -48,15 +48,13 @@ def prior_coverage(voxels) -> dict:
 
 def first_crossing(values: np.ndarray, ts: np.ndarray) -> np.ndarray:
     """Per row of ``values`` (R, S) sampled at the evenly spaced ``ts`` (NaN where undefined), the
-    first + to - crossing by linear interpolation between the two samples around it; -1 where none."""
-    out = np.full(len(values), -1.0)
-    with np.errstate(invalid="ignore"):
-        cross = (values[:, :-1] > 0) & (values[:, 1:] <= 0)
-    rows = np.flatnonzero(cross.any(1))
-    k = cross[rows].argmax(1)
-    a0, a1 = values[rows, k], values[rows, k + 1]
-    out[rows] = ts[k] + (ts[1] - ts[0]) * a0 / (a0 - a1)
-    return out
+    first + to - crossing by linear interpolation between the two samples around it; -1 where none
+    (the renderer's :func:`~h3edge.mapping.raymarch.window_crossing`)."""
+    valid = np.isfinite(values)
+    t, found = window_crossing(torch.from_numpy(np.where(valid, values, 0.0)),
+                               torch.from_numpy(np.broadcast_to(np.asarray(ts, np.float64), values.shape).copy()),
+                               torch.from_numpy(valid))
+    return np.where(found.numpy(), t.numpy(), -1.0)
 
 
 @torch.no_grad()
