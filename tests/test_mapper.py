@@ -224,10 +224,11 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     assert m.process(f).mapped
     current, _ = m._prepare(f)
     stored = m.keyframes.keyframes[0].payload
-    jump = m.edge_jump(f.intrinsics, 3)
-    far = far_side_of_edges(current.depth, 4, jump).reshape(-1)
+    step = m.cfg.edge_radius + 1
+    jump = m.edge_jump(f.intrinsics, step)
+    far = far_side_of_edges(current.depth, 4, jump, step).reshape(-1)
     assert 0.001 < far.mean() < 0.2  # the scene has silhouettes, and they are a small part of the view
-    assert np.array_equal(stored.edge_pixels(4, jump), np.flatnonzero(far))
+    assert np.array_equal(stored.edge_pixels(4, jump, step), np.flatnonzero(far))
     rays = m._sample_rays([current, stored])
     pix = _ray_pixels(rays, f)
     on_far = far[pix]

@@ -96,7 +96,7 @@ class StoredFrame:
         return pix, self.color.reshape(-1, 3)[pix], self.depth_q.reshape(-1)[pix].astype(np.float32) * np.float32(
             self.depth_unit)
 
-    def edge_pixels(self, radius: int, jump: float, step: int = 3, near_too: bool = False) -> np.ndarray:
+    def edge_pixels(self, radius: int, jump: float, step: int, near_too: bool = False) -> np.ndarray:
         """As :func:`edge_pixels` on the stored depth, computed once per setting."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 

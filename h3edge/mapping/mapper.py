@@ -152,7 +152,7 @@ class ImageFrame:
         """As :meth:`StoredFrame.at`."""
         return pix, self.color.reshape(-1, 3)[pix], self.depth.reshape(-1)[pix]
 
-    def edge_pixels(self, radius: int, jump: float, step: int = 3, near_too: bool = False) -> np.ndarray:
+    def edge_pixels(self, radius: int, jump: float, step: int, near_too: bool = False) -> np.ndarray:
         """As :meth:`StoredFrame.edge_pixels`."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
@@ -388,8 +388,8 @@ class Mapper:
         n_surf = self.train_cfg.surface_color_points // len(frames)
         o, d, z, c, sp, sc = [], [], [], [], [], []
         views = [f.pooled for f in frames if f.pooled is not None]
+        step = self.cfg.edge_radius + 1  # an outline's jump reaches across the rim clean_depth left out
         for f in frames:
-            step = self.cfg.edge_radius + 1  # an outline's jump reaches across the rim clean_depth left out
             edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
                                    self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
             if len(edges):
