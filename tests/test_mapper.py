@@ -214,11 +214,13 @@ def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
 
 def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     """``mapper.edge_rays``: that share of each frame's rays, keyframes' included, is drawn among the
-    far side of its depth edges (the background beside a silhouette); the rest uniformly."""
+    far side of its depth edges (the background beside a silhouette), with ``edge_rays_near_too``
+    among both sides; the rest uniformly. ``edge_rays`` 0 is the paper's uniform draw."""
     from h3edge.geometry.depth_edges import far_side_of_edges
 
     seq = ReplicaSequence(tiny_scene)
-    settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.5, edge_rays_radius=4))
+    settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.5, edge_rays_radius=4,
+                                                                     edge_rays_near_too=False))
     m = Mapper(settings)
     f = seq[0]
     assert m.process(f).mapped
@@ -236,7 +238,17 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     expected = 0.5 + 0.5 * far.sum() / (current.depth > 0).sum()
     assert abs(on_far.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / n), (on_far.mean(), expected)
     assert np.allclose(rays.depth.numpy(), current.depth.reshape(-1)[pix], atol=2e-4)
-    uniform = Mapper(LEAN)
+    both = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(settings.mapper, edge_rays_near_too=True)))
+    assert both.process(f).mapped
+    edges = np.zeros(far.shape, bool)
+    edges[both.keyframes.keyframes[0].payload.edge_pixels(4, jump, step, True)] = True
+    assert edges.sum() > far.sum()  # the near side too
+    near_rays = both._sample_rays([both._prepare(f)[0]])
+    expected = 0.5 + 0.5 * edges.sum() / (current.depth > 0).sum()
+    on_edges = edges[_ray_pixels(near_rays, f)].mean()
+    sigma = np.sqrt(expected * (1 - expected) / len(near_rays.depth))
+    assert abs(on_edges - expected) < 4 * sigma, (on_edges, expected)
+    uniform = Mapper(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.0)))
     assert uniform.process(f).mapped
     plain = uniform._sample_rays([uniform._prepare(f)[0]])
     share = far.sum() / (current.depth > 0).sum()  # the paper's uniform draw: edges at their share
