@@ -86,9 +86,9 @@ class MapperConfig:
     # that pass beside a silhouette or through a gap and carve the free space there, and with
     # edge_rays_near_too on the near side as well, the silhouette's own outline (0: every ray drawn
     # uniformly among the valid pixels, the paper's). A departure, measured in two runs per dataset
-    # against uniform rays: Replica +0.64 dB and Depth L1 -11 %, studio Depth L1 -12 %, sim Depth L1
-    # -3 %, the real Kinect sequence unchanged (PSNR +0.04/+0.05 dB, SSIM -0.001/+0.001); 0.25 costs
-    # the real sequence 0.005 SSIM (docs/silhouettes.md)
+    # against uniform rays: Replica +0.64/+0.76 dB, studio Depth L1 -12/-16 %, sim Depth L1 -3/-5 %,
+    # the real Kinect sequence unchanged (three runs: PSNR +0.04 to +0.06 dB, SSIM -0.001 to +0.001);
+    # frames ~3 % slower; 0.25 costs the real sequence 0.005 SSIM (docs/silhouettes.md)
     edge_rays: float = 0.125
     edge_rays_radius: int = 8
     edge_rays_near_too: bool = True  # also the foreground within edge_rays_radius of its outline
