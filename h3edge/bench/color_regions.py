@@ -14,7 +14,9 @@ frames, then on the held-out views splits each method's squared colour error by 
 Beside them the **oracle**: the colour field read at each pixel's *sensor* surface point (its
 depth back-projected), which scores the texture field without the geometry and the renderer. In
 the edge band the share of pixels each method renders within 2 cm, > 2 cm in front and behind.
-Prints a markdown table and writes OUT.json / OUT.md.
+Prints a markdown table and writes OUT.json / OUT.md; the JSON also holds each view's PSNR,
+whole and per region (``per_view``): the table's last row is a mean over views, its regions pool
+the pixels of all views.
 """
 
 from __future__ import annotations
@@ -95,6 +97,12 @@ def summarise(views: list[dict]) -> dict:
             sse = tot(lambda v: v["sse"][r][k])
             res[r][f"psnr_{k}"] = db(sse / n) if n else None
             res[r][f"error_share_{k}"] = sse / max(tot(lambda v: v["sse_all"][k]), 1e-12)
+    # per view: whole-image PSNR and each region's, per method (where the mean of views differs from the pooled error)
+    res["per_view"] = [{"psnr_db": {k: db(v["sse_all"][k] / v["pixels"]) for k in ("h3edge", "tsdf")},
+                        **{r: {"pixel_share": v["count"][r] / v["pixels"],
+                               **{f"psnr_{k}": db(v["sse"][r][k] / v["count"][r]) if v["count"][r] else None
+                                  for k in ("h3edge", "tsdf")}} for r in ("edge", "depth_off", "texture", "rest")}}
+                       for v in views]
     n_edge = tot(lambda v: v["count"]["edge"])
     for k in ("h3edge", "tsdf"):
         res[f"edge_depth_{k}"] = {c: tot(lambda v: v[f"edge_{k}"][c]) / max(n_edge, 1)
