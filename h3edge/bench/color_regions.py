@@ -83,6 +83,18 @@ def view_errors(frame, h3_view, tsdf: MeshRenderer) -> dict:
     return out
 
 
+def view_psnrs(v: dict) -> dict:
+    """One view's whole-image PSNR and each region's (share of the view, PSNR), h3edge and TSDF."""
+    def psnr(sse: float, n: int) -> float | None:
+        return db(sse / n) if n else None
+
+    out: dict = {"psnr_db": {k: psnr(v["sse_all"][k], v["pixels"]) for k in ("h3edge", "tsdf")}}
+    for r in ("edge", "depth_off", "texture", "rest"):
+        n = v["count"][r]
+        out[r] = {"pixel_share": n / v["pixels"], **{f"psnr_{k}": psnr(v["sse"][r][k], n) for k in ("h3edge", "tsdf")}}
+    return out
+
+
 def summarise(views: list[dict]) -> dict:
     """PSNR per method over all pixels and per region, each region's share of the squared error,
     and the edge band's depth classes (pooled over views)."""
@@ -97,12 +109,7 @@ def summarise(views: list[dict]) -> dict:
             sse = tot(lambda v: v["sse"][r][k])
             res[r][f"psnr_{k}"] = db(sse / n) if n else None
             res[r][f"error_share_{k}"] = sse / max(tot(lambda v: v["sse_all"][k]), 1e-12)
-    # per view: whole-image PSNR and each region's, per method (where the mean of views differs from the pooled error)
-    res["per_view"] = [{"psnr_db": {k: db(v["sse_all"][k] / v["pixels"]) for k in ("h3edge", "tsdf")},
-                        **{r: {"pixel_share": v["count"][r] / v["pixels"],
-                               **{f"psnr_{k}": db(v["sse"][r][k] / v["count"][r]) if v["count"][r] else None
-                                  for k in ("h3edge", "tsdf")}} for r in ("edge", "depth_off", "texture", "rest")}}
-                       for v in views]
+    res["per_view"] = [view_psnrs(v) for v in views]
     n_edge = tot(lambda v: v["count"]["edge"])
     for k in ("h3edge", "tsdf"):
         res[f"edge_depth_{k}"] = {c: tot(lambda v: v[f"edge_{k}"][c]) / max(n_edge, 1)
