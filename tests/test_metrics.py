@@ -161,3 +161,27 @@ def test_colour_regions_split_the_valid_pixels():
     assert cols.min() >= 25 and cols.max() <= 37 and m["edge"][1:, 31].all() and m["edge"][1:, 32].all()
     assert m["depth_off"][10, 5] and m["depth_off"].sum() == 1
     assert m["texture"][30:, 50:].mean() > 0.5 and not m["texture"][1:20, :20].any()
+
+
+def test_colour_regions_report_each_view_beside_the_pooled_figures():
+    """Per view, the PSNR of the whole image and of each region (``per_view``), whereas the regions'
+    PSNR pools the pixels of all views: one bad view dominates the pooled figure, not every view's."""
+    from h3edge.bench.color_regions import summarise
+
+    def view(sse_h: float, sse_t: float) -> dict:
+        count = {"edge": 10, "depth_off": 0, "texture": 20, "rest": 70}
+        return {"pixels": 100, "count": count,
+                "sse_all": {"h3edge": sse_h, "tsdf": sse_t, "oracle": 0.01},
+                "sse": {r: {"h3edge": sse_h * n / 100, "tsdf": sse_t * n / 100, "oracle": 0.01 * n / 100}
+                        for r, n in count.items()},
+                **{f"edge_{k}": {"right": 10, "front": 0, "behind": 0} for k in ("h3edge", "tsdf")}}
+
+    res = summarise([view(0.01, 0.001), view(0.01, 1.0)])  # TSDF better on one view, far worse on the other
+    per_view = res["per_view"]
+    assert len(per_view) == 2
+    assert per_view[0]["psnr_db"]["tsdf"] == pytest.approx(50.0)
+    assert per_view[0]["psnr_db"]["h3edge"] == pytest.approx(40.0)
+    assert per_view[1]["psnr_db"]["tsdf"] == pytest.approx(20.0)
+    assert per_view[0]["rest"]["pixel_share"] == pytest.approx(0.7)
+    assert per_view[0]["rest"]["psnr_tsdf"] == pytest.approx(50.0) and per_view[0]["depth_off"]["psnr_tsdf"] is None
+    assert res["rest"]["psnr_tsdf"] < res["rest"]["psnr_h3edge"]  # pooled: TSDF's bad view wins
