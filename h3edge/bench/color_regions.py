@@ -83,11 +83,13 @@ def view_errors(frame, h3_view, tsdf: MeshRenderer) -> dict:
     return out
 
 
+def psnr(sse: float, n: int) -> float | None:
+    """PSNR of ``n`` pixels with squared error sum ``sse``; None for no pixels."""
+    return db(sse / n) if n else None
+
+
 def view_psnrs(v: dict) -> dict:
     """One view's whole-image PSNR and each region's (share of the view, PSNR), h3edge and TSDF."""
-    def psnr(sse: float, n: int) -> float | None:
-        return db(sse / n) if n else None
-
     out: dict = {"psnr_db": {k: psnr(v["sse_all"][k], v["pixels"]) for k in ("h3edge", "tsdf")}}
     for r in ("edge", "depth_off", "texture", "rest"):
         n = v["count"][r]
@@ -107,7 +109,7 @@ def summarise(views: list[dict]) -> dict:
         res[r] = {"pixel_share": n / px}
         for k in ("h3edge", "tsdf", "oracle"):
             sse = tot(lambda v: v["sse"][r][k])
-            res[r][f"psnr_{k}"] = db(sse / n) if n else None
+            res[r][f"psnr_{k}"] = psnr(sse, n)
             res[r][f"error_share_{k}"] = sse / max(tot(lambda v: v["sse_all"][k]), 1e-12)
     res["per_view"] = [view_psnrs(v) for v in views]
     n_edge = tot(lambda v: v["count"]["edge"])
