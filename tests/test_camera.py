@@ -24,6 +24,12 @@ def test_rays_go_through_pixel_centres():
     assert rays[2, 3, 0] == pytest.approx(-rays[2, 4, 0])
 
 
+@pytest.mark.parametrize("step", [2, 3, 4])
+def test_strided_rays_are_the_full_tables_strided_pixels(step):
+    full = pixel_rays_camera(K)
+    assert np.array_equal(pixel_rays_camera(K, step), full[step // 2::step, step // 2::step])
+
+
 def test_backproject_project_roundtrip():
     rng = np.random.default_rng(0)
     depth = rng.uniform(0.5, 3.0, (K.height, K.width)).astype(np.float32)

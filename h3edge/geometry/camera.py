@@ -56,10 +56,12 @@ class Intrinsics:
                 "cx": self.cx, "cy": self.cy}
 
 
-def pixel_rays_camera(intr: Intrinsics) -> np.ndarray:
-    """Per-pixel ray directions in the camera frame with z = 1, shape (H, W, 3), float64."""
-    u = np.arange(intr.width, dtype=np.float64) + PIXEL_CENTER_OFFSET
-    v = np.arange(intr.height, dtype=np.float64) + PIXEL_CENTER_OFFSET
+def pixel_rays_camera(intr: Intrinsics, step: int = 1) -> np.ndarray:
+    """Per-pixel ray directions in the camera frame with z = 1, shape (H, W, 3), float64; with
+    ``step`` > 1 only every ``step``-th pixel of each axis from ``step // 2`` on, as
+    ``image[step // 2::step, step // 2::step]`` picks them (without building the full table)."""
+    u = np.arange(step // 2, intr.width, step, dtype=np.float64) + PIXEL_CENTER_OFFSET
+    v = np.arange(step // 2, intr.height, step, dtype=np.float64) + PIXEL_CENTER_OFFSET
     uu, vv = np.meshgrid(u, v)
     return np.stack([(uu - intr.cx) / intr.fx, (vv - intr.cy) / intr.fy, np.ones_like(uu)], axis=-1)
 

@@ -55,7 +55,7 @@ class FreeSpace:
             return 0
         s = self.cfg.stride
         z = depth[s // 2::s, s // 2::s].reshape(-1)
-        rays = pixel_rays_camera(intr)[s // 2::s, s // 2::s].reshape(-1, 3)  # z = 1
+        rays = pixel_rays_camera(intr, s).reshape(-1, 3)  # z = 1, the same pixels as z
         ok = z > self.truncation
         z, rays = z[ok], rays[ok]
         if len(z) == 0:
