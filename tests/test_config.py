@@ -30,6 +30,7 @@ def test_profile_by_name():
     ("[eval]\nn_points = 'many'\n", "expected int"),
     ("[eval\n", "profile.toml"),
     ("[mapper]\nedge_rays = 1.5\n", "edge_rays is a share"),
+    ("[mapper]\nedge_rays = 0.5\ntexture_rays = 0.6\n", "texture_rays is a share"),
     ("[mapper]\nedge_max_incidence = 90.0\n", r"edge_max_incidence must be in \[0, 90\)"),
 ])
 def test_bad_profiles_are_named(tmp_path, text, msg):

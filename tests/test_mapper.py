@@ -255,6 +255,35 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     assert abs(far[_ray_pixels(plain, f)].mean() - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth))
 
 
+def test_texture_rays_come_from_textured_pixels(tiny_scene):
+    """``mapper.texture_rays``: that share of each frame's rays is drawn among its valid pixels whose
+    colour gradient exceeds ``texture.tr_weak``, the rest uniformly (edge rays off here); 0 keeps
+    the paper's uniform draw."""
+    from h3edge.mapping.gradient import color_gradient
+
+    seq = ReplicaSequence(tiny_scene)
+    settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.0, texture_rays=0.5))
+    m = Mapper(settings)
+    f = seq[0]
+    assert m.process(f).mapped
+    current, _ = m._prepare(f)
+    stored = m.keyframes.keyframes[0].payload
+    textured = ((color_gradient(current.color, current.depth, settings.texture.depth_jump) > settings.texture.tr_weak)
+                & (current.depth > 0)).reshape(-1)
+    share = textured.sum() / (current.depth > 0).sum()
+    assert 0.01 < share < 0.8
+    for frames in ([current], [current, stored]):
+        rays = m._sample_rays(frames)
+        on = textured[_ray_pixels(rays, f)].mean()
+        expected = 0.5 + 0.5 * share
+        assert abs(on - expected) < 4 * np.sqrt(expected * (1 - expected) / len(rays.depth)), (on, expected)
+    uniform = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(settings.mapper, texture_rays=0.0)))
+    assert uniform.process(f).mapped
+    plain = uniform._sample_rays([uniform._prepare(f)[0]])
+    on = textured[_ray_pixels(plain, f)].mean()
+    assert abs(on - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth)), (on, share)
+
+
 def _ray_pixels(rays, f) -> np.ndarray:
     """Flat pixel index in frame ``f`` of each ray's measured surface point."""
     w2c = np.linalg.inv(f.pose)

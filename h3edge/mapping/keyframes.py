@@ -23,6 +23,7 @@ import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
 from h3edge.geometry.depth_edges import far_side_of_edges
+from h3edge.mapping.gradient import color_gradient
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
 from h3edge.mapping.visibility import PooledDepth
 
@@ -100,6 +101,14 @@ class StoredFrame:
         """As :func:`edge_pixels` on the stored depth, computed once per setting."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
+    def draw_textured(self, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Up to ``n`` pixels drawn uniformly, with replacement, among the valid ones whose colour
+        gradient exceeds ``threshold`` (:func:`textured_mask`, kept per setting), as :meth:`draw`
+        returns them; fewer (none) where such pixels are rare (absent)."""
+        bits = textured_mask(self._edges, self.color, self.depth, threshold, depth_jump)
+        return self.at(draw_from_mask(bits, self.depth_q.size, n, rng))
+
     @property
     def depth(self) -> np.ndarray:
         """The stored depth, float32 metres (H, W), 0 = invalid."""
@@ -120,6 +129,36 @@ def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: 
     if key not in cache:
         cache[key] = np.flatnonzero(far_side_of_edges(depth, radius, jump, step, near_too)).astype(np.int32)
     return cache[key]
+
+
+def textured_mask(cache: dict, color: np.ndarray, depth: np.ndarray, threshold: float, depth_jump: float
+                  ) -> np.ndarray:
+    """Packed bits (``np.packbits`` of the flat image) of the valid pixels whose colour gradient g
+    (H3's, :func:`~h3edge.mapping.gradient.color_gradient`; pixels across a depth Laplacian above
+    ``depth_jump`` excluded) exceeds ``threshold``, taken from / kept in ``cache`` (a frame's; 1 bit
+    a pixel)."""
+    key = ("textured", float(threshold), float(depth_jump))
+    if key not in cache:
+        g = color_gradient(color, depth, depth_jump)
+        cache[key] = np.packbits(((g > threshold) & (depth > 0)).reshape(-1))
+    return cache[key]
+
+
+def draw_from_mask(bits: np.ndarray, size: int, n: int, rng: np.random.Generator, rounds: int = 4) -> np.ndarray:
+    """Up to ``n`` flat indices (int64) drawn uniformly, with replacement, among the set bits of
+    ``bits`` (packed, over ``size`` pixels), by rejection from all pixels in at most ``rounds``
+    rounds: fewer where the set bits are rare (under ~1 / (4 * rounds) of the pixels drawn short)."""
+    got: list[np.ndarray] = []
+    need, k = n, 4 * n + 16
+    for _ in range(rounds):
+        if need <= 0:
+            break
+        cand = rng.integers(0, size, k)
+        hit = cand[((bits[cand >> 3] >> (7 - (cand & 7))) & 1).astype(bool)][:need]
+        got.append(hit)
+        need -= len(hit)
+        k = min(int(need * k / max(len(hit), 1) * 1.2) + 16, 4 * size)
+    return np.concatenate(got) if got else np.zeros(0, np.int64)
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:
