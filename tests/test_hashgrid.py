@@ -74,17 +74,7 @@ def test_backends_agree_across_the_dense_cube_boundary(features):
     and the generic width) index them as the torch path does, forward and backward."""
     spec = HashGridSpec(levels=4, features=features, log2_table=12, base_resolution=6, per_level_scale=2.0)
     xn = torch.tensor(np.random.default_rng(7).uniform(-0.3, 1.3, (300, 3)), dtype=torch.float32)
-    res = {}
-    for b in BACKENDS:
-        grid = HashGrid(spec, BOUND, backend=b, init_scale=0.5, seed=3)
-        y = grid(xn, normalised=True)
-        (y * torch.arange(y.shape[1], dtype=torch.float32)).sum().backward()
-        rows, g = grid.take_sparse_grad()
-        order = torch.argsort(rows)
-        res[b] = (y.detach(), rows[order], g[order])
-    assert torch.allclose(res["torch"][0], res["numba"][0], atol=1e-6)
-    assert torch.equal(res["torch"][1], res["numba"][1])
-    assert torch.allclose(res["torch"][2], res["numba"][2], atol=1e-5)
+    assert_backends_agree(lambda b: HashGrid(spec, BOUND, backend=b, init_scale=0.5, seed=3), xn, normalised=True)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -101,12 +91,13 @@ def test_second_hash_function_matches_reference(backend):
     assert len(torch.unique(rows)) == len(rows)  # two calls, one set of rows
 
 
-def test_backends_agree_forward_and_backward(points):
-    x = torch.tensor(points, dtype=torch.float32)
+def assert_backends_agree(make, x: torch.Tensor, normalised: bool = False) -> None:
+    """Grids ``make(backend)`` of both backends give the same features, touched rows and row
+    gradients for points ``x``."""
     res = {}
     for b in BACKENDS:
-        grid = make_grid(b)
-        y = grid(x)
+        grid = make(b)
+        y = grid(x, normalised=normalised)
         (y * torch.arange(y.shape[1], dtype=torch.float32)).sum().backward()
         rows, g = grid.take_sparse_grad()
         order = torch.argsort(rows)
@@ -114,6 +105,10 @@ def test_backends_agree_forward_and_backward(points):
     assert torch.allclose(res["torch"][0], res["numba"][0], atol=1e-6)
     assert torch.equal(res["torch"][1], res["numba"][1])
     assert torch.allclose(res["torch"][2], res["numba"][2], atol=1e-5)
+
+
+def test_backends_agree_forward_and_backward(points):
+    assert_backends_agree(make_grid, torch.tensor(points, dtype=torch.float32))
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
