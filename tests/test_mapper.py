@@ -277,6 +277,10 @@ def test_texture_rays_come_from_textured_pixels(tiny_scene):
         on = textured[_ray_pixels(rays, f)].mean()
         expected = 0.5 + 0.5 * share
         assert abs(on - expected) < 4 * np.sqrt(expected * (1 - expected) / len(rays.depth)), (on, expected)
+    odd = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(
+        settings.mapper, rays_per_iteration=27, edge_rays=0.5, texture_rays=0.5)))  # 13.5 + 13.5 round to 28
+    assert odd.process(f).mapped
+    assert len(odd._sample_rays([odd._prepare(f)[0]]).depth) == 27
     uniform = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(settings.mapper, texture_rays=0.0)))
     assert uniform.process(f).mapped
     plain = uniform._sample_rays([uniform._prepare(f)[0]])

@@ -411,7 +411,7 @@ class Mapper:
         measured surface points (:func:`~h3edge.mapping.trainer.surface_color_loss`)."""
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
         n_edge = int(round(self.cfg.edge_rays * n_each))
-        n_texture = int(round(self.cfg.texture_rays * n_each))
+        n_texture = min(int(round(self.cfg.texture_rays * n_each)), n_each - n_edge)  # rounding never overdraws
         tex = self.settings.texture
         n_surf = self.train_cfg.surface_color_points // len(frames)
         o, d, z, c, sp, sc = [], [], [], [], [], []
