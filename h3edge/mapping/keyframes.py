@@ -104,10 +104,9 @@ class StoredFrame:
     def draw_textured(self, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to ``n`` pixels drawn uniformly, with replacement, among the valid ones whose colour
-        gradient exceeds ``threshold`` (:func:`textured_mask`, kept per setting), as :meth:`draw`
+        gradient exceeds ``threshold`` (:func:`draw_textured`, kept per setting), as :meth:`draw`
         returns them; fewer (none) where such pixels are rare (absent)."""
-        bits = textured_mask(self._edges, self.color, self.depth, threshold, depth_jump)
-        return self.at(draw_from_mask(bits, self.depth_q.size, n, rng))
+        return draw_textured(self, n, threshold, depth_jump, rng)
 
     @property
     def depth(self) -> np.ndarray:
@@ -131,17 +130,20 @@ def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: 
     return cache[key]
 
 
-def textured_mask(cache: dict, color: np.ndarray, depth: np.ndarray, threshold: float, depth_jump: float
-                  ) -> np.ndarray:
-    """Packed bits (``np.packbits`` of the flat image) of the valid pixels whose colour gradient g
-    (H3's, :func:`~h3edge.mapping.gradient.color_gradient`; pixels across a depth Laplacian above
-    ``depth_jump`` excluded) exceeds ``threshold``, taken from / kept in ``cache`` (a frame's; 1 bit
-    a pixel)."""
+def draw_textured(frame, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``frame.draw_textured`` for a :class:`StoredFrame` or the mapper's current frame (``color``,
+    ``depth``, ``at`` and an ``_edges`` cache): the valid pixels whose colour gradient g (H3's,
+    :func:`~h3edge.mapping.gradient.color_gradient`; pixels across a depth Laplacian above
+    ``depth_jump`` excluded) exceeds ``threshold`` are kept in the cache as packed bits (1 bit a
+    pixel), computed on the first draw; the depth is read only then."""
     key = ("textured", float(threshold), float(depth_jump))
-    if key not in cache:
-        g = color_gradient(color, depth, depth_jump)
-        cache[key] = np.packbits(((g > threshold) & (depth > 0)).reshape(-1))
-    return cache[key]
+    bits = frame._edges.get(key)
+    if bits is None:
+        depth = frame.depth
+        g = color_gradient(frame.color, depth, depth_jump)
+        bits = frame._edges[key] = np.packbits(((g > threshold) & (depth > 0)).reshape(-1))
+    return frame.at(draw_from_mask(bits, frame.color.shape[0] * frame.color.shape[1], n, rng))
 
 
 def draw_from_mask(bits: np.ndarray, size: int, n: int, rng: np.random.Generator, rounds: int = 4) -> np.ndarray:

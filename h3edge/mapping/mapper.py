@@ -40,10 +40,9 @@ from h3edge.mapping.keyframes import (
     KeyframeConfig,
     KeyframeSet,
     StoredFrame,
-    draw_from_mask,
+    draw_textured,
     edge_pixels,
     gradient_scores,
-    textured_mask,
 )
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
@@ -179,8 +178,7 @@ class ImageFrame:
     def draw_textured(self, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`StoredFrame.draw_textured`."""
-        bits = textured_mask(self._edges, self.color, self.depth, threshold, depth_jump)
-        return self.at(draw_from_mask(bits, self.depth.size, n, rng))
+        return draw_textured(self, n, threshold, depth_jump, rng)
 
     def store(self) -> StoredFrame:
         """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`), the
