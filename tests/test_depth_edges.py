@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from h3edge.geometry.depth_edges import far_side_of_edges, near_side_of_edges
+from h3edge.geometry.depth_edges import depth_discontinuities, far_side_of_edges, near_side_of_edges
 
 
 def test_only_the_foreground_rim_and_flying_pixels_are_marked():
@@ -59,3 +59,15 @@ def test_a_surface_at_a_grazing_angle_is_no_edge_at_any_resolution():
     low = _tilted_plane(160, 120, 95.0, 60.0)
     assert near_side_of_edges(low, 2, 0.05).sum() > 0.25 * (low > 0).sum()  # before: the 5 % everywhere
     assert discontinuity_jump(0.05, 2, 525.0, 80.0) == 0.05  # Kinect frames: the 5 % as measured
+
+
+def test_discontinuities_are_both_sides_of_a_relative_jump_and_the_rim_of_holes():
+    d = np.full((10, 12), 2.0, np.float32)
+    d[:, :4] = 1.0  # a foreground, 1 m nearer: columns 3 and 4 are the edge's two sides
+    d[:, 8:] *= np.float32(1.02)  # a 2 % step (sensor quantisation): no edge at 5 %
+    d[7, 10] = 0.0  # a hole: it and its 8 neighbours are marked
+    m = depth_discontinuities(d, 0.05)
+    assert m[:, 3:5].all() and not m[:, :3].any()
+    assert not m[:6, 5:].any()
+    assert m[6:9, 9:12].all() and m[:, 5:].sum() == 9
+    assert depth_discontinuities(np.zeros((3, 3), np.float32), 0.05).all()

@@ -145,18 +145,18 @@ def test_textured_draw_takes_only_and_every_textured_valid_pixel():
     color = np.full((h, w, 3), 128, np.uint8)
     color[:, w // 2:] = rng.integers(0, 256, (h, w - w // 2, 3), dtype=np.uint8)  # textured right half
     kf = StoredFrame.of(color, depth, np.eye(4), Intrinsics(w, h, 30.0, 30.0, w / 2, h / 2))
-    g = color_gradient(color, kf.depth, 0.01)
+    g = color_gradient(color, kf.depth, 0.05)
     want = np.flatnonzero(((g > 0.2) & (kf.depth > 0)).reshape(-1))
     assert 0.3 < len(want) / (depth > 0).sum() < 0.6  # about the textured half
     before = kf.nbytes
     draw = np.random.default_rng(2)
-    pix, rgb, z = (np.concatenate(a) for a in zip(*(kf.draw_textured(len(want), 0.2, 0.01, draw) for _ in range(300))))
+    pix, rgb, z = (np.concatenate(a) for a in zip(*(kf.draw_textured(len(want), 0.2, 0.05, draw) for _ in range(300))))
     assert len(pix) == 300 * len(want) and np.isin(pix, want).all()
     counts = np.bincount(pix, minlength=depth.size)[want]
     assert counts.min() > 0 and counts.std() / counts.mean() < 0.15
     assert np.array_equal(rgb, color.reshape(-1, 3)[pix])
     assert kf.nbytes - before == (depth.size + 7) // 8
-    assert len(kf.draw_textured(50, 1e9, 0.01, np.random.default_rng(3))[0]) == 0  # nothing that textured
+    assert len(kf.draw_textured(50, 1e9, 0.05, np.random.default_rng(3))[0]) == 0  # nothing that textured
 
 
 def test_stored_frame_without_depth_draws_nothing():

@@ -268,7 +268,7 @@ def test_texture_rays_come_from_textured_pixels(tiny_scene):
     assert m.process(f).mapped
     current, _ = m._prepare(f)
     stored = m.keyframes.keyframes[0].payload
-    textured = ((color_gradient(current.color, current.depth, settings.texture.depth_jump) > settings.texture.tr_weak)
+    textured = ((color_gradient(current.color, current.depth, m.edge_jump(f.intrinsics, 1)) > settings.texture.tr_weak)
                 & (current.depth > 0)).reshape(-1)
     share = textured.sum() / (current.depth > 0).sum()
     assert 0.01 < share < 0.8

@@ -102,7 +102,7 @@ def test_texture_classes_present(layout_room):
     for T in camera_path(40, layout)[::4]:
         rgb, depth, _ = r.render(intr, T)
         hits = r.raycaster.hits(intr, T)
-        g = color_gradient(rgb, depth)
+        g = color_gradient(rgb, depth, 0.05)
         kinds = np.array(room.surface_kinds)[room.face_surface[np.maximum(hits.prim, 0)]]
         for k in per_kind:
             per_kind[k].append(g[hits.valid & (kinds == k)])

@@ -1,4 +1,5 @@
-"""Depth-edge pixels: the near side of every depth discontinuity (measured wrong) and its far side.
+"""Depth-edge pixels: the near side of every depth discontinuity (measured wrong), its far side,
+and both sides (:func:`depth_discontinuities`, where the colour gradient is not texture).
 
 Structured-light and time-of-flight sensors blur depth edges: pixels along a silhouette take the
 foreground's depth a few pixels past the object's true outline, or a depth between foreground and
@@ -64,3 +65,20 @@ def far_side_of_edges(depth: np.ndarray, radius: int, jump: float, step: int = 3
         return (d > 0) & (cv2.dilate(on_outline.astype(np.uint8), window) > 0)
     nearest = cv2.erode(np.where(on_outline, d, np.float32(1e30)), window)  # 1e30: no outline near
     return (d > 0) & (nearest * np.float32(1.0 + jump) < d)
+
+
+def depth_discontinuities(depth: np.ndarray, jump: float) -> np.ndarray:
+    """(H, W) bool: the pixels where ``depth`` (m, 0 = invalid) is not one surface across their 3x3
+    window: invalid pixels, valid ones beside an invalid one, and valid ones with a valid neighbour
+    nearer or farther by more than ``jump`` times their own depth (both sides of an occlusion
+    edge). The test is relative, like the sensors' noise and quantisation (a Kinect's depth steps
+    by ~1 % of the depth at 2-3 m): an absolute threshold on a depth Laplacian marks half a real
+    Kinect frame at 1 cm, as if every pixel were an occlusion."""
+    d = np.asarray(depth, np.float32)
+    valid = d > 0
+    window = np.ones((3, 3), np.uint8)
+    farthest = cv2.dilate(d, window)
+    nearest = cv2.erode(np.where(valid, d, np.float32(np.inf)), window, borderType=cv2.BORDER_REPLICATE)
+    beside_invalid = cv2.erode(valid.astype(np.uint8), window, borderType=cv2.BORDER_REPLICATE) == 0
+    step = np.float32(1.0 + jump)
+    return ~valid | beside_invalid | (farthest > d * step) | (nearest * step < d)

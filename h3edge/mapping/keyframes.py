@@ -101,12 +101,12 @@ class StoredFrame:
         """As :func:`edge_pixels` on the stored depth, computed once per setting."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
-    def draw_textured(self, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
+    def draw_textured(self, n: int, threshold: float, jump: float, rng: np.random.Generator
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to ``n`` pixels drawn uniformly, with replacement, among the valid ones whose colour
         gradient exceeds ``threshold`` (:func:`draw_textured`, kept per setting), as :meth:`draw`
         returns them; fewer (none) where such pixels are rare (absent)."""
-        return draw_textured(self, n, threshold, depth_jump, rng)
+        return draw_textured(self, n, threshold, jump, rng)
 
     @property
     def depth(self) -> np.ndarray:
@@ -130,18 +130,18 @@ def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: 
     return cache[key]
 
 
-def draw_textured(frame, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
+def draw_textured(frame, n: int, threshold: float, jump: float, rng: np.random.Generator
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``frame.draw_textured`` for a :class:`StoredFrame` or the mapper's current frame (``color``,
     ``depth``, ``at`` and an ``_edges`` cache): the valid pixels whose colour gradient g (H3's,
-    :func:`~h3edge.mapping.gradient.color_gradient`; pixels across a depth Laplacian above
-    ``depth_jump`` excluded) exceeds ``threshold`` are kept in the cache as packed bits (1 bit a
+    :func:`~h3edge.mapping.gradient.color_gradient`; pixels at depth discontinuities above ``jump``
+    times the depth excluded) exceeds ``threshold`` are kept in the cache as packed bits (1 bit a
     pixel), computed on the first draw; the depth is read only then."""
-    key = ("textured", float(threshold), float(depth_jump))
+    key = ("textured", float(threshold), float(jump))
     bits = frame._edges.get(key)
     if bits is None:
         depth = frame.depth
-        g = color_gradient(frame.color, depth, depth_jump)
+        g = color_gradient(frame.color, depth, jump)
         bits = frame._edges[key] = np.packbits(((g > threshold) & (depth > 0)).reshape(-1))
     return frame.at(draw_from_mask(bits, frame.color.shape[0] * frame.color.shape[1], n, rng))
 

@@ -175,10 +175,10 @@ class ImageFrame:
         """As :meth:`StoredFrame.edge_pixels`."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
-    def draw_textured(self, n: int, threshold: float, depth_jump: float, rng: np.random.Generator
+    def draw_textured(self, n: int, threshold: float, jump: float, rng: np.random.Generator
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`StoredFrame.draw_textured`."""
-        return draw_textured(self, n, threshold, depth_jump, rng)
+        return draw_textured(self, n, threshold, jump, rng)
 
     def store(self) -> StoredFrame:
         """What a keyframe keeps of this frame: the whole images (:class:`StoredFrame`), the
@@ -350,7 +350,7 @@ class Mapper:
         if not tex.quasi_heterogeneous or self.frames_mapped % max(1, tex.update_interval):
             return None
         with self.timings.time("texture"):
-            grad = color_gradient(current.color, current.depth, tex.depth_jump)
+            grad = color_gradient(current.color, current.depth, self.edge_jump(current.intrinsics, 1))
             self.patterns.update(current.color, current.depth, current.intrinsics, current.pose, pts,
                                  self.voxels.locate, self.settings.voxels.voxel_size, grad)
             self.refresh_warps()
@@ -368,7 +368,7 @@ class Mapper:
         scores = None
         if self.settings.keyframes.gradient_aided:
             if grad is None:
-                grad = color_gradient(current.color, current.depth, self.settings.texture.depth_jump)
+                grad = color_gradient(current.color, current.depth, self.edge_jump(current.intrinsics, 1))
             scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
         self.keyframes.insert(frame_id, observed, scores,
                               payload=current.store())
@@ -418,7 +418,8 @@ class Mapper:
         for f in frames:
             edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
                                    self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
-            textured = f.draw_textured(n_texture, tex.tr_weak, tex.depth_jump, self.rng) if n_texture else None
+            textured = (f.draw_textured(n_texture, tex.tr_weak, self.edge_jump(f.intrinsics, 1), self.rng)
+                        if n_texture else None)
             n_special = (n_edge if len(edges) else 0) + (len(textured[0]) if textured is not None else 0)
             # the rest uniformly, also what a frame without edges or textured pixels falls short of
             parts = [f.draw(n_each - n_special, self.rng)]

@@ -24,7 +24,6 @@ import cv2
 import numpy as np
 
 from h3edge.geometry.camera import Intrinsics, pixels_to_camera, project
-from h3edge.mapping.gradient import color_gradient
 
 PLAIN, WEAK, RICH = 0, 1, 2
 CLASS_NAMES = {PLAIN: "unstructured rich", WEAK: "weak", RICH: "rich with low-frequency directions"}
@@ -52,7 +51,6 @@ class TextureConfig:
     # with the same m. Any value > sqrt(3) keeps them disjoint (tests check it); hashing makes the
     # spread free (same number of cells, anywhere).
     anchor_scale: float = 2.0
-    depth_jump: float = 0.01  # m, colour gradient zeroed where the depth Laplacian exceeds this
     line_depth_jump: float = 0.05  # m, a segment whose depth steps more than this between pixels is dropped
     min_line_length: float = 10.0  # px, shorter segments are ignored
     stride: int = 2  # pixel stride for the per-voxel gradient statistics (counts scaled back)
@@ -280,14 +278,14 @@ class TexturePatterns:
 
     # ------------------------------------------------------------------ update
     def update(self, rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, points: np.ndarray,
-               locate, voxel_size: float, g: np.ndarray | None = None) -> dict:
+               locate, voxel_size: float, g: np.ndarray) -> dict:
         """One determination on a frame: colour-gradient fusion, lines, direction fusion.
 
         ``points``: the frame's back-projected world points (H, W, 3) (NaN where invalid);
-        ``locate(points) -> (voxel ids, ...)`` maps points to allocated voxels; ``g``: the
-        per-pixel colour gradient when the caller already has it."""
+        ``locate(points) -> (voxel ids, ...)`` maps points to allocated voxels; ``g``: the frame's
+        per-pixel colour gradient (:func:`~h3edge.mapping.gradient.color_gradient`, occlusion edges
+        zeroed with the mapper's depth-edge jump)."""
         cfg = self.cfg
-        g = color_gradient(rgb, depth, cfg.depth_jump) if g is None else g
         s = max(1, cfg.stride)
         sub = (slice(None, None, s), slice(None, None, s))
         valid = depth[sub] > 0
