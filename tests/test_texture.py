@@ -221,10 +221,11 @@ def _kinect_depth(z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def test_kinect_depth_steps_are_not_occlusion_edges():
     """The colour gradient leaves out occlusion edges, not depth noise. On a textured wall seen at
     2-3 m through a Kinect's quantised depth the authors' test (depth Laplacian > 1 cm) zeroed
-    most pixels (45-65 % of a real 7-Scenes frame's), and the wall read as weak texture; a relative jump keeps the wall's
-    texture and still finds both sides of a box's outline 1 m in front of it."""
+    most pixels (45-65 % of a real 7-Scenes frame's), and the wall read as weak texture; a
+    relative jump keeps the wall's texture and still finds both sides of a box's outline 1 m in
+    front of it."""
     rng = np.random.default_rng(0)
-    h, w, f = 120, 160, 130.0
+    h, w = 120, 160
     u = np.arange(w, dtype=np.float32)[None, :].repeat(h, 0)
     z = 2.0 + u / w  # a wall receding from 2 to 3 m across the view
     box = (slice(40, 80), slice(60, 100))

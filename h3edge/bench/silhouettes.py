@@ -9,6 +9,8 @@ views, for every valid pixel the render puts more than 5 cm in front of the sens
   the allocated voxels, and of the prior alone: does the *field* carry the phantom surface, or
   only the renderer's march?
 - whether the rendered point lies in a voxel whose 8 priors are all unset, or some of them;
+- how far the pixel lies from the nearest depth discontinuity of the held-out sensor depth (a rim
+  on a silhouette, or space away from every edge);
 - for every valid pixel rendered > 5 cm behind the sensor depth or not at all ("blue"): whether the
   full SDF's first crossing lies at the sensor depth (the renderer missed it) and the prior's behind;
 and the map's prior coverage (vertices with a prior, voxels with all / any corners unset). One ray
@@ -24,11 +26,13 @@ import json
 import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
 from h3edge.config import apply_overrides, load_profile
 from h3edge.geometry.camera import pixel_rays_world
+from h3edge.geometry.depth_edges import depth_discontinuities
 from h3edge.io import open_sequence
 from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.raymarch import PriorLookup, window_crossing
@@ -111,6 +115,13 @@ def diagnose_view(m: Mapper, f, threshold: float = 0.05) -> dict:
     pts = o[None] + d[idx] * depth.reshape(-1)[idx, None]
     _, vox = PriorLookup(m.voxels)(pts)
     unset = ~m.voxels.prior_set[m.voxels.voxel_vertices[np.maximum(vox, 0)]]
+    # where they are: pixels from the nearest depth discontinuity (5 % jump) or hole of the sensor's view
+    px = cv2.distanceTransform((~depth_discontinuities(gt, 0.05)).astype(np.uint8), cv2.DIST_L2, 3).reshape(-1)[idx]
+    out.update({
+        "at_most_2px_from_a_sensor_edge_or_hole": float(np.mean(px <= 2)),
+        "3_to_8px_from_a_sensor_edge_or_hole": float(np.mean((px > 2) & (px <= 8))),
+        "over_8px_from_a_sensor_edge_or_hole": float(np.mean(px > 8)),
+    })
     out.update({
         "field_crossing_in_front": float(np.mean((full_t > 0) & (full_t < g - threshold))),
         "prior_crossing_in_front": float(np.mean((prior_t > 0) & (prior_t < g - threshold))),
