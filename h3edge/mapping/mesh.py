@@ -148,7 +148,10 @@ def _chunk_surface(ijk: np.ndarray, voxel_size: float, sdf_fn: SdfFn, r: int, ba
     if not mask.any() or not (evaluated.min() < 0 < evaluated.max()):
         return None
     try:
-        verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(cell,) * 3, mask=mask, allow_degenerate=False)
+        # degenerate triangles kept: whether one collapses (a lattice value at, or within float32
+        # rounding of, the level) depends on the chunk's origin, so dropping them made a map's
+        # block meshes differ from its whole mesh by a few faces
+        verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(cell,) * 3, mask=mask, allow_degenerate=True)
     except RuntimeError:  # "No surface found": the sign changes only outside the enabled cubes
         return None
     return verts + origin * voxel_size, faces
