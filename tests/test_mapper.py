@@ -268,7 +268,8 @@ def test_texture_rays_come_from_textured_pixels(tiny_scene):
     assert m.process(f).mapped
     current, _ = m._prepare(f)
     stored = m.keyframes.keyframes[0].payload
-    textured = ((color_gradient(current.color, current.depth, m.edge_jump(f.intrinsics, 1)) > settings.texture.tr_weak)
+    g = color_gradient(current.color, current.depth, m.gradient_jump(f.intrinsics))
+    textured = ((g > settings.texture.tr_weak)
                 & (current.depth > 0)).reshape(-1)
     share = textured.sum() / (current.depth > 0).sum()
     assert 0.01 < share < 0.8

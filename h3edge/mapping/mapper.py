@@ -287,6 +287,12 @@ class Mapper:
         return discontinuity_jump(self.cfg.edge_jump, radius, min(intrinsics.fx, intrinsics.fy),
                                   self.cfg.edge_max_incidence)
 
+    def gradient_jump(self, intrinsics: Intrinsics) -> float:
+        """The relative depth jump that makes a pixel an occlusion edge for the colour gradient
+        (:func:`~h3edge.mapping.gradient.color_gradient`): the depth-edge jump across its 3x3
+        window."""
+        return self.edge_jump(intrinsics, 1)
+
     def _drop(self, frame: Frame, code: str, reason: str) -> FrameResult:
         self.dropped[code] = self.dropped.get(code, 0) + 1
         log.warning("frame %d dropped: %s", frame.index, reason)
@@ -350,7 +356,7 @@ class Mapper:
         if not tex.quasi_heterogeneous or self.frames_mapped % max(1, tex.update_interval):
             return None
         with self.timings.time("texture"):
-            grad = color_gradient(current.color, current.depth, self.edge_jump(current.intrinsics, 1))
+            grad = color_gradient(current.color, current.depth, self.gradient_jump(current.intrinsics))
             self.patterns.update(current.color, current.depth, current.intrinsics, current.pose, pts,
                                  self.voxels.locate, self.settings.voxels.voxel_size, grad)
             self.refresh_warps()
@@ -368,7 +374,7 @@ class Mapper:
         scores = None
         if self.settings.keyframes.gradient_aided:
             if grad is None:
-                grad = color_gradient(current.color, current.depth, self.edge_jump(current.intrinsics, 1))
+                grad = color_gradient(current.color, current.depth, self.gradient_jump(current.intrinsics))
             scores = gradient_scores(vox, grad.reshape(-1)[sub], stride)
         self.keyframes.insert(frame_id, observed, scores,
                               payload=current.store())
@@ -418,7 +424,7 @@ class Mapper:
         for f in frames:
             edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
                                    self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
-            textured = (f.draw_textured(n_texture, tex.tr_weak, self.edge_jump(f.intrinsics, 1), self.rng)
+            textured = (f.draw_textured(n_texture, tex.tr_weak, self.gradient_jump(f.intrinsics), self.rng)
                         if n_texture else None)
             n_special = (n_edge if len(edges) else 0) + (len(textured[0]) if textured is not None else 0)
             # the rest uniformly, also what a frame without edges or textured pixels falls short of
