@@ -77,8 +77,6 @@ def depth_discontinuities(depth: np.ndarray, jump: float) -> np.ndarray:
     d = np.asarray(depth, np.float32)
     valid = d > 0
     window = np.ones((3, 3), np.uint8)
-    farthest = cv2.dilate(d, window)
     nearest = cv2.erode(np.where(valid, d, np.float32(np.inf)), window, borderType=cv2.BORDER_REPLICATE)
-    beside_invalid = cv2.erode(valid.astype(np.uint8), window, borderType=cv2.BORDER_REPLICATE) == 0
-    step = np.float32(1.0 + jump)
-    return ~valid | beside_invalid | (farthest > d * step) | (nearest * step < d)
+    not_all_valid = cv2.erode(valid.astype(np.uint8), window, borderType=cv2.BORDER_REPLICATE) == 0  # also ~valid
+    return not_all_valid | near_side_of_edges(d, 1, jump) | (nearest * np.float32(1.0 + jump) < d)
