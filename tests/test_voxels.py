@@ -195,3 +195,70 @@ def test_points_by_voxel_counts_and_sums_like_a_sort():
     with pytest.raises(ValueError):
         points_by_voxel(np.array([[1e6, 0.0, 0.0]]), 0.1)
     assert len(points_by_voxel(np.full((4, 3), np.nan), 0.1)[0]) == 0
+
+
+BACK_WALL_Y = 2.095  # 5 mm in front of a voxel face: the face neighbour behind the wall is allocated
+
+
+def back_wall_map(observed_behind: float) -> VoxelMap:
+    """A wall seen from the front: its voxel layer [2.0, 2.1] and the neighbour layer behind it."""
+    vm = VoxelMap(VoxelConfig(min_points=3, observed_behind=observed_behind))
+    vm.allocate(np.full((INTR.height, INTR.width), BACK_WALL_Y, np.float32), INTR, POSE)
+    assert set(np.unique(unpack(vm.voxel_keys)[:, 1])) == {20, 21}
+    return vm
+
+
+def test_vertices_record_how_far_behind_the_surface_a_frame_saw_them():
+    vm = back_wall_map(0.05)
+    xyz = unpack(vm.vertex_keys) * vm.cfg.voxel_size
+    y = xyz[:, 1]
+    seen = np.isfinite(vm.seen_behind)
+    assert seen.mean() > 0.5
+    assert np.allclose(vm.seen_behind[seen], y[seen] - BACK_WALL_Y, atol=1e-5)  # camera z = world y
+    # a view from behind the wall sees the far layer's vertices in front of its surface
+    back = look_at(np.array([0.0, 4.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    before = vm.seen_behind.copy()
+    vm.allocate(np.full((INTR.height, INTR.width), 4.0 - BACK_WALL_Y, np.float32), INTR, back)
+    far = seen & (y > 2.15) & (np.abs(xyz[:, [0, 2]]).max(1) < 1.0)  # in both views
+    assert far.any() and (vm.seen_behind[far] < 0).all() and (vm.seen_behind <= before).all()
+
+
+def test_support_ends_where_every_view_saw_only_through_a_surface():
+    """A back shell (the field crossing zero 9 cm behind the only surface any view saw) is no mesh:
+    support ends ``observed_behind`` behind the surface; without the limit the shell is meshed."""
+    from h3edge.mapping.mesh import extract_mesh
+    from h3edge.mapping.raymarch import PriorLookup
+
+    probes = np.array([[0.0, BACK_WALL_Y + d, 0.0] for d in (0.0, 0.03, 0.07, 0.09)])
+    meshes = {}
+    for limit in (0.05, np.inf):
+        vm = back_wall_map(limit)
+        y = unpack(vm.vertex_keys)[:, 1]
+        with torch.no_grad():  # inside behind the wall, drifting up at the far layer's back: a shell at ~2.167
+            vm.priors[torch.from_numpy(y == 21)] = -1.0
+            vm.priors[torch.from_numpy(y == 22)] = 0.5
+        vm.prior_set[y == 22] = True
+        lookup = PriorLookup(vm)
+        support = lookup.support(probes)
+        if limit == 0.05:
+            assert (support[:2] > 0.5).all() and (support[2:] == 0).all(), support
+        else:
+            assert (support > 0.25).all(), support
+        mesh = extract_mesh(vm.voxel_keys, vm.cfg.voxel_size, lambda p, lk=lookup: lk(p)[0], resolution=5,
+                            support_fn=lookup.support, min_support=0.25)
+        centre = np.abs(mesh.vertices[:, [0, 2]]).max(1) < 1.0  # away from the map's edges
+        meshes[limit] = mesh.vertices[centre, 1]
+    assert len(meshes[0.05]) and meshes[0.05].max() < BACK_WALL_Y + 0.05  # the wall, nothing behind it
+    assert (meshes[np.inf] > BACK_WALL_Y + 0.05).mean() > 0.3  # without the limit: the shell too
+
+
+def test_seen_behind_survives_state_dict_and_old_states_read_as_seen():
+    vm = back_wall_map(0.05)
+    meta, arrays = vm.state_dict()
+    back = VoxelMap(vm.cfg)
+    back.load_state_dict(meta, arrays)
+    assert np.array_equal(back.seen_behind, vm.seen_behind)
+    assert np.array_equal(vm.frozen_copy().seen_behind, vm.seen_behind)
+    old = VoxelMap(vm.cfg)
+    old.load_state_dict(meta, {k: v for k, v in arrays.items() if k != "seen_behind"})
+    assert (old.seen_behind == -np.inf).all() and len(old.seen_behind) == len(vm.prior_set)

@@ -4,9 +4,12 @@ distance slice at a height.
 What the map knows at a point, in this order:
 
 - inside an allocated voxel whose priors were observed (trilinear support at least the mesh's
-  ``mesh_min_support``): the field's SDF, ``sdf_m = field_sdf * truncation``. Within the band
-  (``|sdf_m| < truncation``) it is the distance to the surface (state ``NEAR``); beyond it only its
-  sign is trusted: ``FREE`` in front (distance at least ``truncation``), ``INSIDE`` behind;
+  ``mesh_min_support``; :meth:`~h3edge.mapping.raymarch.PriorLookup.support`): the field's SDF,
+  ``sdf_m = field_sdf * truncation``. Within the band (``|sdf_m| < truncation``) it is the distance
+  to the surface (state ``NEAR``); beyond it only its sign is trusted: ``FREE`` in front (distance
+  at least ``truncation``), ``INSIDE`` behind. Support ends ``voxels.observed_behind`` behind the
+  surfaces the frames saw: deeper, no training reached the field (where it drifts, it would read
+  free inside a wall), so such points are ``UNKNOWN``, and ``INSIDE`` spans the band behind a surface;
 - else, outside every allocated voxel, in a cell depth rays crossed
   (:mod:`h3edge.mapping.free_space`): ``FREE``, distance at least ``truncation`` (reported as
   ``truncation``, a lower bound); an allocated voxel without observed priors may hold a surface,

@@ -109,7 +109,8 @@ class MapperConfig:
     mesh_resolution: int = 8  # marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)
     # mesh only cubes whose 8 lattice points each have at least this share of their trilinear
     # weight on vertices whose prior an observation set (0: every allocated voxel, the authors');
-    # the field's phantom surfaces sit where priors are unset (docs/silhouettes.md)
+    # the field's phantom surfaces sit where priors are unset (docs/silhouettes.md). Support also
+    # ends voxels.observed_behind behind the surfaces the frames saw (no back shells)
     mesh_min_support: float = 0.25
     # train on keyframes whenever no frame waits (service; offline replay at a camera rate)
     train_between_frames: bool = True

@@ -118,8 +118,9 @@ class PriorLookup:
         self.vs = voxels.cfg.voxel_size
         self.vv = voxels.voxel_vertices
         self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
-        self.prior_set = voxels.prior_set
-        self._observed: np.ndarray | None = None  # prior_set as values to interpolate, on first use
+        self.prior_set, self.seen_behind = voxels.prior_set, voxels.seen_behind
+        self.observed_behind = voxels.cfg.observed_behind
+        self._observed: tuple[np.ndarray, ...] | None = None  # per-vertex values support interpolates
 
     def __call__(self, pts: np.ndarray, values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(trilinear prior, voxel id) at ``pts``; ``values``: interpolate these per-vertex values
@@ -144,11 +145,23 @@ class PriorLookup:
 
     def support(self, pts: np.ndarray) -> np.ndarray:
         """Share of the trilinear weight at ``pts`` that falls on vertices whose prior was set from
-        a depth observation (0 outside the allocated voxels): where the map has evidence."""
+        a depth observation: where the map has evidence. 0 outside the allocated voxels, and where
+        every frame saw the point more than ``observed_behind`` behind its measured surface (the
+        vertices' ``seen_behind`` interpolated over those some frame saw; none seen: 0)."""
         if self._observed is None:
-            self._observed = self.prior_set.astype(np.float64)
-        share, vox = self(pts, self._observed)
-        return np.where(vox >= 0, share, 0.0)
+            seen = np.isfinite(self.seen_behind)
+            # seen farther in front than a voxel: as a voxel (free space), so the interpolation stays local
+            front = np.maximum(np.where(seen, self.seen_behind, 0.0), -self.vs)
+            self._observed = (self.prior_set.astype(np.float64), seen.astype(np.float64), front.astype(np.float64))
+        set_share, vox = self(pts, self._observed[0])
+        support = np.where(vox >= 0, set_share, 0.0)
+        if np.isfinite(self.observed_behind):
+            seen_share, _ = self(pts, self._observed[1])
+            behind, _ = self(pts, self._observed[2])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                deep = (seen_share <= 0) | (behind > self.observed_behind * seen_share)
+            support[deep] = 0.0
+        return support
 
 
 @torch.no_grad()
