@@ -262,3 +262,9 @@ def test_seen_behind_survives_state_dict_and_old_states_read_as_seen():
     old = VoxelMap(vm.cfg)
     old.load_state_dict(meta, {k: v for k, v in arrays.items() if k != "seen_behind"})
     assert (old.seen_behind == -np.inf).all() and len(old.seen_behind) == len(vm.prior_set)
+    # its support is the one it was saved with: the set priors' share, wherever a voxel is
+    from h3edge.mapping.raymarch import PriorLookup
+
+    pts = (unpack(old.voxel_keys) + 0.5) * old.cfg.voxel_size
+    share, _ = PriorLookup(old)(pts, old.prior_set.astype(np.float64))
+    assert share.max() > 0 and np.allclose(PriorLookup(old).support(pts), share)

@@ -607,7 +607,7 @@ class Mapper:
             "memory_bytes": {
                 "keyframes": kf_bytes,
                 "hash_grids_with_adam": grids,
-                "priors": len(self.voxels.vertex_keys) * 4 * 3,
+                "priors": len(self.voxels.vertex_keys) * 4 * 4,  # prior, its Adam moments, seen_behind
                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                 "texture_patterns": self.patterns.nbytes,
                 "free_space": self.free_space.nbytes,

@@ -149,7 +149,7 @@ class PriorLookup:
         every frame saw the point more than ``observed_behind`` behind its measured surface (the
         vertices' ``seen_behind`` interpolated over those some frame saw; none seen: 0)."""
         if self._observed is None:
-            seen = np.isfinite(self.seen_behind)
+            seen = self.seen_behind < np.inf  # -inf: a state from before the record, seen
             # seen farther in front than a voxel: as a voxel (free space), so the interpolation stays local
             front = np.maximum(np.where(seen, self.seen_behind, 0.0), -self.vs)
             self._observed = (self.prior_set.astype(np.float64), seen.astype(np.float64), front.astype(np.float64))
