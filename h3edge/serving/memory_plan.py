@@ -26,7 +26,7 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
                                 (f.tex_log2_table, f.tex_levels, f.tex_features)):
         rows = levels * (1 << log2)
         tables += rows * feats * 4 * 4 + rows  # table, Adam m, v, gradient scratch; touched flags
-    per_voxel = 360  # keys + index + 8 vertex ids + ~1.5 vertices (key, prior, Adam) + texture state + warps
+    per_voxel = 366  # keys, index, 8 vertex ids, ~1.5 vertices (key, prior, Adam, seen_behind), texture state, warps
     voxels = settings.voxels.max_voxels * per_voxel
     snapshot = tables // 4 + voxels // 2  # a query's frozen copy: the tables and the voxel map
     budget = int(budget_mb) << 20
