@@ -151,8 +151,8 @@ class PriorLookup:
         if self._observed is None:
             seen = self.seen_behind < np.inf  # -inf: a state from before the record, seen
             # seen farther in front than a voxel: as a voxel (free space), so the interpolation stays local
-            front = np.maximum(np.where(seen, self.seen_behind, 0.0), -self.vs)
-            self._observed = (self.prior_set.astype(np.float64), seen.astype(np.float64), front.astype(np.float64))
+            behind_m = np.maximum(np.where(seen, self.seen_behind, 0.0), -self.vs)
+            self._observed = (self.prior_set.astype(np.float64), seen.astype(np.float64), behind_m.astype(np.float64))
         set_share, vox = self(pts, self._observed[0])
         support = np.where(vox >= 0, set_share, 0.0)
         if np.isfinite(self.observed_behind):

@@ -254,14 +254,13 @@ class VoxelMap:
             new = new[:max(room, 0)]
         if len(new):
             self._insert(new)
-        self._record_seen(cand, depth, intr, c2w)
+        ids = self.voxels.find(cand)
+        ids = ids[ids >= 0]  # the allocated voxels this frame observes
+        self._record_seen(ids, depth, intr, c2w)
         if self.cfg.prior_fusion_frames > 0:
-            ids = self.voxels.find(cand)
-            self._fuse_priors(ids[ids >= 0], depth, intr, c2w)
+            self._fuse_priors(ids, depth, intr, c2w)
             return new
         if self.cfg.prior_retry:  # every voxel this frame sees that still has an unset vertex
-            ids = self.voxels.find(cand)
-            ids = ids[ids >= 0]
             todo = ids[~self.prior_set[self.voxel_vertices[ids]].all(1)]
         else:
             todo = self.voxels.find(new)
@@ -269,11 +268,10 @@ class VoxelMap:
             self._init_priors(todo, depth, intr, c2w)
         return new
 
-    def _record_seen(self, keys: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        """Lower ``seen_behind`` of the vertices of the allocated voxels among ``keys`` to how far
-        behind this frame's measured surface they lie, where they project onto valid depth."""
-        ids = self.voxels.find(keys)
-        vid = np.unique(self.voxel_vertices[ids[ids >= 0]].reshape(-1))
+    def _record_seen(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
+        """Lower ``seen_behind`` of the vertices of ``voxel_ids`` to how far behind this frame's
+        measured surface they lie, where they project onto valid depth."""
+        vid = np.unique(self.voxel_vertices[voxel_ids].reshape(-1))
         if len(vid) == 0:
             return
         sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
