@@ -256,25 +256,24 @@ class VoxelMap:
             self._insert(new)
         ids = self.voxels.find(cand)
         ids = ids[ids >= 0]  # the allocated voxels this frame observes
-        self._record_seen(ids, depth, intr, c2w)
+        # their vertices' projective SDF, once: the record, the priors' retry and fusion all read it
+        vid = np.unique(self.voxel_vertices[ids].reshape(-1))
+        sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
+        self._record_seen(vid, sdf, valid)
         if self.cfg.prior_fusion_frames > 0:
-            self._fuse_priors(ids, depth, intr, c2w)
+            self._fuse_priors(vid, sdf, valid)
             return new
         if self.cfg.prior_retry:  # every voxel this frame sees that still has an unset vertex
             todo = ids[~self.prior_set[self.voxel_vertices[ids]].all(1)]
         else:
             todo = self.voxels.find(new)
         if len(todo):
-            self._init_priors(todo, depth, intr, c2w)
+            self._init_priors(todo, vid, sdf, valid)
         return new
 
-    def _record_seen(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        """Lower ``seen_behind`` of the vertices of ``voxel_ids`` to how far behind this frame's
-        measured surface they lie, where they project onto valid depth."""
-        vid = np.unique(self.voxel_vertices[voxel_ids].reshape(-1))
-        if len(vid) == 0:
-            return
-        sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
+    def _record_seen(self, vid: np.ndarray, sdf: np.ndarray, valid: np.ndarray) -> None:
+        """Lower ``seen_behind`` of vertices ``vid`` to how far behind this frame's measured surface
+        they lie (``-sdf``), where they project onto valid depth."""
         seen = vid[valid]
         self.seen_behind[seen] = np.minimum(self.seen_behind[seen], -sdf[valid].astype(np.float32))
 
@@ -306,14 +305,14 @@ class VoxelMap:
         d[inside] = depth[vi[inside], ui[inside]]
         return d - z, inside & (d > 0)
 
-    def _fuse_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        """Running-mean projective priors of the vertices of ``voxel_ids`` seen fewer than
-        ``prior_fusion_frames`` times (see VoxelConfig)."""
-        vid = np.unique(self.voxel_vertices[voxel_ids].reshape(-1))
-        vid = vid[self.prior_obs[vid] < self.cfg.prior_fusion_frames]
+    def _fuse_priors(self, vid: np.ndarray, sdf: np.ndarray, valid: np.ndarray) -> None:
+        """Running-mean projective priors of vertices ``vid`` (their projective SDF ``sdf`` in this
+        frame, ``valid`` where it is measured) seen fewer than ``prior_fusion_frames`` times (see
+        VoxelConfig)."""
+        fewer = self.prior_obs[vid] < self.cfg.prior_fusion_frames
+        vid, sdf, valid = vid[fewer], sdf[fewer], valid[fewer]
         if len(vid) == 0:
             return
-        sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
         with np.errstate(invalid="ignore"):
             band = (sdf > -self.cfg.fusion_behind) & ((sdf < self.cfg.init_range) | (self.cfg.prior_clamp > 0))
             occluded = valid & (sdf <= -self.cfg.fusion_behind)
@@ -335,10 +334,14 @@ class VoxelMap:
         self.prior_obs[t] += 1
         self.prior_set[t] = True
 
-    def _init_priors(self, voxel_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
-        """Projective priors for the unset vertices of ``voxel_ids`` (see the module docstring)."""
+    def _init_priors(self, voxel_ids: np.ndarray, frame_vid: np.ndarray, frame_sdf: np.ndarray,
+                     frame_valid: np.ndarray) -> None:
+        """Projective priors for the unset vertices of ``voxel_ids`` (see the module docstring), from
+        this frame's projective SDF ``frame_sdf`` / ``frame_valid`` of the sorted vertices ``frame_vid``
+        (which hold every corner of ``voxel_ids``)."""
         vid = self.voxel_vertices[voxel_ids]  # (n, 8)
-        sdf, valid = self._projective_sdf(vid.reshape(-1), depth, intr, c2w)
+        at = np.searchsorted(frame_vid, vid.reshape(-1))
+        sdf, valid = frame_sdf[at], frame_valid[at]
         with np.errstate(invalid="ignore"):
             known = np.abs(sdf) < self.cfg.init_range
             if self.cfg.prior_clamp > 0:  # far in front of the surface: free, set to +clamp below
