@@ -13,7 +13,7 @@ from h3edge.io import open_sequence
 from h3edge.sim.make import make_scene
 from h3edge.sim.scene import LAYOUTS, build_room
 from h3edge.sim.sensor import RoomRenderer, SensorModel, degrade_depth
-from h3edge.sim.trajectory import camera_path
+from h3edge.sim.trajectory import MAX_ROLL_STEP_DEG, camera_path, steady_poses
 
 
 def _digest(root):
@@ -66,6 +66,43 @@ def test_trajectory_stays_in_free_space(layout_room):
         assert not inside.any(), f"camera inside obstacle {box}"
     steps = np.linalg.norm(np.diff(eyes, axis=0), axis=1)
     assert steps.max() < 0.15  # smooth: no jumps at the default frame count
+
+
+def _rotation_steps_deg(poses):
+    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def test_trajectory_never_spins(layout_room):
+    """No frame-to-frame turn a camera could not make: a level camera whose gaze passes near the
+    zenith spins about its axis (67 degrees in one frame of the studio loop, a held-out view between
+    two such frames saw a patch no training frame saw); the camera rolls at a bounded rate instead."""
+    layout, _ = layout_room
+    poses = camera_path(400, layout)
+    assert np.allclose(np.einsum("nji,njk->nik", poses[:, :3, :3], poses[:, :3, :3]), np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(poses[:, :3, :3]), 1.0)
+    assert _rotation_steps_deg(poses).max() < 12.0
+    level = np.abs(poses[:, 2, 0]) < 1e-9  # x axis horizontal: the horizon is level
+    assert level.mean() > 0.9
+
+
+def test_steady_poses_roll_at_a_bounded_rate():
+    """A gaze swept over the zenith: look-at with a fixed up vector turns 180 degrees about the
+    optical axis within a few 1-degree steps of the gaze; steady poses roll at most
+    MAX_ROLL_STEP_DEG a frame and end level."""
+    from h3edge.geometry.camera import look_at
+
+    a = np.radians(np.linspace(60, 120, 61))  # elevation of the gaze, through 90 (straight up)
+    eyes = np.zeros((len(a), 3))
+    targets = np.stack([np.cos(a), np.full_like(a, 0.02), np.sin(a)], 1)  # just beside the zenith
+    level = np.stack([look_at(e, t) for e, t in zip(eyes, targets)])
+    assert _rotation_steps_deg(level).max() > 30  # 1-degree gaze steps
+    steady = steady_poses(eyes, targets)
+    assert np.allclose(steady[:, :3, 2], level[:, :3, 2])  # the gaze is unchanged
+    gaze_step = np.degrees(np.arccos(np.clip((level[:-1, :3, 2] * level[1:, :3, 2]).sum(1), -1, 1)))
+    assert (_rotation_steps_deg(steady) <= gaze_step + MAX_ROLL_STEP_DEG + 1e-6).all()
+    np.testing.assert_allclose(steady[:5], level[:5])  # level before the zenith
+    np.testing.assert_allclose(steady[-1], level[-1], atol=1e-9)  # and level again after it
 
 
 def test_trajectory_sees_the_whole_room(layout_room):

@@ -24,6 +24,9 @@ from h3edge.sim.trajectory import camera_path, midpoint_poses
 log = logging.getLogger(__name__)
 DEPTH_SCALE = 6553.5  # Replica's: 1/6553.5 m = 0.15 mm steps, 10 m range
 FORMAT_VERSION = 1
+# what the generator renders for a spec; a cached scene of another version is made again.
+# 2: the camera rolls at a bounded rate (h3edge.sim.trajectory), no spin at a near-vertical gaze
+GENERATOR_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,7 @@ def make_scene(out: str | Path, spec: SimSpec) -> dict:
     summary = {
         "format_version": FORMAT_VERSION,
         "generator": "h3edge.sim",
+        "generator_version": GENERATOR_VERSION,
         "spec": asdict(spec),
         "frames": spec.frames,
         "heldout_frames": len(held),
@@ -117,10 +121,18 @@ def scene_spec(root: str | Path) -> SimSpec | None:
         return None
 
 
+def _generator_version(root: Path) -> int:
+    try:
+        return int(json.loads((root / "meta.json").read_text()).get("generator_version", 1))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0
+
+
 def ensure_scene(out: str | Path, spec: SimSpec) -> Path:
-    """Make the scene unless ``out`` already holds one made from the same spec (a cache)."""
+    """Make the scene unless ``out`` already holds one made from the same spec by this generator
+    version (a cache)."""
     out = Path(out)
-    if scene_spec(out) == spec:
+    if scene_spec(out) == spec and _generator_version(out) == GENERATOR_VERSION:
         log.info("using cached scene %s", out)
         return out
     make_scene(out, spec)

@@ -2,7 +2,11 @@
 
 Hand-placed key views (eye, look-at target) visit every wall, the floor, the ceiling and the
 furniture, with close-ups (about 1 m) and far views across the room; a closed Catmull-Rom
-spline through them, resampled at constant arc length, gives the camera-to-world poses.
+spline through them, resampled at constant arc length, gives the camera-to-world poses. The
+camera keeps the horizon level, as a hand-held or robot camera does, but like one it rolls at a
+bounded rate: where the gaze passes near the zenith or nadir a level camera would spin about its
+axis (67 degrees between two frames of the studio loop), so there the camera carries its roll
+along and levels again afterwards.
 """
 
 from __future__ import annotations
@@ -55,6 +59,10 @@ STUDIO_KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, flo
     ((0.9, 2.0, 1.4), (6.9, 3.0, 1.2)),
 ]
 KEY_VIEW_SETS = {"room": KEY_VIEWS, "studio": STUDIO_KEY_VIEWS}
+# degrees a frame the camera may roll towards level, at a horizontal gaze (scaled by the sine of
+# the gaze's angle from the vertical, so a camera looking nearly straight up barely rolls)
+MAX_ROLL_STEP_DEG = 8.0
+_UP = np.array([0.0, 0.0, 1.0])
 
 
 def _catmull_rom(points: np.ndarray, samples_per_segment: int) -> np.ndarray:
@@ -87,7 +95,29 @@ def camera_path(n_frames: int, layout: str = "room") -> np.ndarray:
     # open the loop: the last pose stops one step before the first, so frames never repeat
     want = np.linspace(0, s[-1], n_frames, endpoint=False)
     idx = np.clip(np.searchsorted(s, want), 0, len(s) - 1)
-    return np.stack([look_at(e[i], tg[i]) for i in idx])
+    return steady_poses(e[idx], tg[idx])
+
+
+def steady_poses(eyes: np.ndarray, targets: np.ndarray, max_roll_step_deg: float = MAX_ROLL_STEP_DEG) -> np.ndarray:
+    """Camera-to-world poses (N, 4, 4) at ``eyes`` looking at ``targets`` (N, 3 each), level
+    (:func:`look_at`) wherever the level roll changes by at most ``max_roll_step_deg`` * sin(angle
+    of the gaze from the vertical) from the previous frame; elsewhere the previous frame's x axis,
+    carried to the new gaze, turns towards level by that much."""
+    poses = []
+    for eye, target in zip(eyes, targets):
+        T = look_at(eye, target)
+        if poses:
+            z, level = T[:3, 2], T[:3, 0]
+            x = poses[-1][:3, 0] - (poses[-1][:3, 0] @ z) * z  # the previous x, carried to the new gaze
+            x /= np.linalg.norm(x)
+            phi = np.arctan2(np.cross(x, level) @ z, x @ level)  # roll from there to level
+            limit = np.radians(max_roll_step_deg)
+            if abs(phi) > limit:
+                step = np.sign(phi) * limit
+                x = np.cos(step) * x + np.sin(step) * np.cross(z, x)
+                T[:3, 0], T[:3, 1] = x, np.cross(z, x)
+        poses.append(T)
+    return np.stack(poses)
 
 
 def midpoint_poses(poses: np.ndarray, every: int) -> np.ndarray:
