@@ -122,6 +122,7 @@ def scene_spec(root: str | Path) -> SimSpec | None:
 
 
 def _generator_version(root: Path) -> int:
+    """The generator version a scene directory was made by (1 before versions were written)."""
     try:
         return int(json.loads((root / "meta.json").read_text()).get("generator_version", 1))
     except (OSError, ValueError, TypeError, AttributeError):

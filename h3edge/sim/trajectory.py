@@ -59,10 +59,9 @@ STUDIO_KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, flo
     ((0.9, 2.0, 1.4), (6.9, 3.0, 1.2)),
 ]
 KEY_VIEW_SETS = {"room": KEY_VIEWS, "studio": STUDIO_KEY_VIEWS}
-# degrees a frame the camera may roll towards level, at a horizontal gaze (scaled by the sine of
-# the gaze's angle from the vertical, so a camera looking nearly straight up barely rolls)
+# degrees a frame the camera may roll about its optical axis on its way to level (the scene's
+# median turn is about 3 degrees a frame; a level camera spun 67 where the gaze nears the zenith)
 MAX_ROLL_STEP_DEG = 8.0
-_UP = np.array([0.0, 0.0, 1.0])
 
 
 def _catmull_rom(points: np.ndarray, samples_per_segment: int) -> np.ndarray:
@@ -99,16 +98,19 @@ def camera_path(n_frames: int, layout: str = "room") -> np.ndarray:
 
 
 def steady_poses(eyes: np.ndarray, targets: np.ndarray, max_roll_step_deg: float = MAX_ROLL_STEP_DEG) -> np.ndarray:
-    """Camera-to-world poses (N, 4, 4) at ``eyes`` looking at ``targets`` (N, 3 each), level
-    (:func:`look_at`) wherever the level roll changes by at most ``max_roll_step_deg`` * sin(angle
-    of the gaze from the vertical) from the previous frame; elsewhere the previous frame's x axis,
-    carried to the new gaze, turns towards level by that much."""
+    """Camera-to-world poses (N, 4, 4) at ``eyes`` looking at ``targets`` (N, 3 each): level
+    (:func:`look_at`) wherever that is at most ``max_roll_step_deg`` of roll from the previous
+    frame's x axis carried to the new gaze; elsewhere that carried axis turns towards level by
+    ``max_roll_step_deg``. The gaze is always the target's."""
     poses = []
     for eye, target in zip(eyes, targets):
         T = look_at(eye, target)
         if poses:
             z, level = T[:3, 2], T[:3, 0]
             x = poses[-1][:3, 0] - (poses[-1][:3, 0] @ z) * z  # the previous x, carried to the new gaze
+            if np.linalg.norm(x) < 1e-9:  # the gaze turned onto the previous x axis: start level
+                poses.append(T)
+                continue
             x /= np.linalg.norm(x)
             phi = np.arctan2(np.cross(x, level) @ z, x @ level)  # roll from there to level
             limit = np.radians(max_roll_step_deg)
