@@ -31,6 +31,30 @@ def test_same_seed_same_bytes(tmp_path, tiny_spec, tiny_scene):
     assert _digest(tmp_path / "again") == _digest(tiny_scene)
 
 
+def test_cached_scene_of_an_older_generator_is_made_again(tmp_path, tiny_spec):
+    """``ensure_scene`` reuses a scene made from the same spec by this generator version, and makes
+    one again whose ``meta.json`` names an older version (or none: version 1)."""
+    import json
+
+    from h3edge.sim.make import GENERATOR_VERSION, ensure_scene
+
+    spec = dataclasses.replace(tiny_spec, frames=2)
+    out = ensure_scene(tmp_path / "s", spec)
+    meta_path = out / "meta.json"
+    assert json.loads(meta_path.read_text())["generator_version"] == GENERATOR_VERSION
+    (out / "marker").write_text("kept")
+    ensure_scene(out, spec)  # the cache
+    assert (out / "marker").exists()
+    meta = json.loads(meta_path.read_text())
+    del meta["generator_version"]
+    meta_path.write_text(json.dumps(meta))
+    traj = out / "traj.txt"
+    traj.write_text("stale")
+    ensure_scene(out, spec)
+    assert json.loads(meta_path.read_text())["generator_version"] == GENERATOR_VERSION
+    assert traj.read_text() != "stale"
+
+
 def test_other_seed_other_textures(tmp_path, tiny_spec, tiny_scene):
     make_scene(tmp_path / "s1", dataclasses.replace(tiny_spec, seed=1, frames=2))
     a = (tiny_scene / "results" / "frame000000.jpg").read_bytes()

@@ -112,28 +112,29 @@ def make_scene(out: str | Path, spec: SimSpec) -> dict:
     return summary
 
 
+def _read_meta(root: str | Path) -> dict | None:
+    """A scene directory's ``meta.json``, None when it has none that parses."""
+    try:
+        meta = json.loads((Path(root) / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
 def scene_spec(root: str | Path) -> SimSpec | None:
     """The spec a scene directory was made from (its ``meta.json``), None when it is not one."""
     try:
-        spec = json.loads((Path(root) / "meta.json").read_text())["spec"]
-        return SimSpec(**{"layout": "room", **spec})  # scenes made before layouts are rooms
-    except (OSError, ValueError, KeyError, TypeError):
+        return SimSpec(**{"layout": "room", **_read_meta(root)["spec"]})  # scenes made before layouts are rooms
+    except (KeyError, TypeError, ValueError):
         return None
-
-
-def _generator_version(root: Path) -> int:
-    """The generator version a scene directory was made by (1 before versions were written)."""
-    try:
-        return int(json.loads((root / "meta.json").read_text()).get("generator_version", 1))
-    except (OSError, ValueError, TypeError, AttributeError):
-        return 0
 
 
 def ensure_scene(out: str | Path, spec: SimSpec) -> Path:
     """Make the scene unless ``out`` already holds one made from the same spec by this generator
     version (a cache)."""
     out = Path(out)
-    if scene_spec(out) == spec and _generator_version(out) == GENERATOR_VERSION:
+    made_by = (_read_meta(out) or {}).get("generator_version", 1)  # 1: before versions were written
+    if scene_spec(out) == spec and made_by == GENERATOR_VERSION:
         log.info("using cached scene %s", out)
         return out
     make_scene(out, spec)

@@ -102,18 +102,19 @@ def steady_poses(eyes: np.ndarray, targets: np.ndarray, max_roll_step_deg: float
     (:func:`look_at`) wherever that is at most ``max_roll_step_deg`` of roll from the previous
     frame's x axis carried to the new gaze; elsewhere that carried axis turns towards level by
     ``max_roll_step_deg``. The gaze is always the target's."""
+    limit = np.radians(max_roll_step_deg)
     poses = []
     for eye, target in zip(eyes, targets):
         T = look_at(eye, target)
         if poses:
             z, level = T[:3, 2], T[:3, 0]
             x = poses[-1][:3, 0] - (poses[-1][:3, 0] @ z) * z  # the previous x, carried to the new gaze
-            if np.linalg.norm(x) < 1e-9:  # the gaze turned onto the previous x axis: start level
+            norm = np.linalg.norm(x)
+            if norm < 1e-9:  # the gaze turned onto the previous x axis: start level
                 poses.append(T)
                 continue
-            x /= np.linalg.norm(x)
+            x /= norm
             phi = np.arctan2(np.cross(x, level) @ z, x @ level)  # roll from there to level
-            limit = np.radians(max_roll_step_deg)
             if abs(phi) > limit:
                 step = np.sign(phi) * limit
                 x = np.cos(step) * x + np.sin(step) * np.cross(z, x)
