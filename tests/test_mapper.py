@@ -134,6 +134,38 @@ def test_render_finds_an_analytic_plane():
         MapRenderer(fld, vm, RenderConfig(max_pixels=100)).render(intr, c2w)
 
 
+def test_render_takes_a_surface_just_past_the_allocated_voxels():
+    """Voxels end where depth points end, and the residual can carry the surface a few millimetres
+    past the region's face (studio's concave corners: black specks where the full SDF left the
+    voxels at +0.04-0.08 truncations). The prior march already takes such an exit on the prior;
+    the full-SDF fallback takes it too (``exit_tolerance``), at the field's extrapolated zero.
+    Here the priors exit at +0.2 (no prior hit) and the residual's -0.16 puts the surface 2 mm
+    below the voxels: without the exit rule no ray renders."""
+    intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
+    c2w = look_at(np.array([0.03, 0.02, 1.5]), np.array([0.03, 0.02, 0.0]), up=np.array([0.0, 1.0, 0.0]))
+    o, d = pixel_rays_world(intr, c2w)
+    vm = VoxelMap(VoxelConfig(min_points=1))
+    vm.allocate((0.05 - o[2]) / d[..., 2], intr, c2w)  # points mid-voxel: the voxels span z 0 .. 0.1
+    tr = vm.cfg.truncation
+    z = unpack(vm.vertex_keys)[:, 2] * vm.cfg.voxel_size
+    assert z.min() == 0.0
+    vm.priors.data[:] = torch.from_numpy(((z + 0.01) / tr).astype(np.float32))  # prior zero 1 cm below
+    fld = Field(FieldConfig(geo_log2_table=12, tex_log2_table=12), np.array([[-2.0] * 3, [2.0] * 3]), 0.1)
+    with torch.no_grad():
+        fld.sdf_mlp[-1].weight.zero_()
+        fld.sdf_mlp[-1].bias.fill_(-0.008 / tr)  # full SDF zero at z = -0.002
+    surface = (-0.002 - o[2]) / d[..., 2]
+
+    def rendered(tolerance: float) -> np.ndarray:
+        return MapRenderer(fld, vm, RenderConfig(exit_tolerance=tolerance)).render(intr, c2w)[1]
+
+    assert (rendered(0.0) > 0).mean() == 0.0
+    out = rendered(RenderConfig().exit_tolerance)
+    hit = out > 0
+    assert hit.mean() > 0.2, hit.mean()  # rays whose last 1 cm sample reads <= 0.1 (z < 3 mm)
+    assert np.abs(out[hit] - surface[hit]).max() < 0.004
+
+
 def test_prior_adam_keeps_state_across_growth():
     vm = VoxelMap(VoxelConfig(min_points=1))
     intr = Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0)

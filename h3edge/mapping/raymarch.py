@@ -203,12 +203,34 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
         # every ray still empty: no prior crossing at all, or none that carried weight
         empty = np.flatnonzero(depth == 0)
         if len(empty):
+            # a surface the residual carries just past the allocated region's face counts, as in the
+            # prior march (studio: black specks along concave corners, where the field leaves the
+            # voxels at +0.04-0.08 with the wall a few millimetres behind the face)
             t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], np.full(len(empty), cfg.near),
-                                           np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.search_chunk)
+                                           np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.search_chunk,
+                                           cfg.exit_tolerance)
             found = empty[t_hit[empty] > 0]
             if len(found):
-                _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
+                missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
+                if len(missed):  # an exit's window can hold too little weight: the exit point is the surface
+                    _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color)
     return color, depth
+
+
+def _render_at(neural_field, lookup, origin, dirs, t_hit, rays, back: float, dev, depth, color) -> None:
+    """Render ``rays`` at ``t_hit`` itself: that depth, and the colour field there, read in the voxel
+    of the point (or of the point ``back`` in front of it, for a surface just past the allocated
+    voxels); rays with neither point in a voxel stay empty."""
+    pts = np.asarray(origin, np.float64)[None] + dirs[rays] * t_hit[rays, None]
+    vox = lookup(pts)[1]
+    out = vox < 0
+    vox[out] = lookup(pts[out] - dirs[rays[out]] * back)[1]
+    ok = vox >= 0
+    if not ok.any():
+        return
+    col = neural_field.color(torch.from_numpy(pts[ok].astype(np.float32)).to(dev), torch.from_numpy(vox[ok]).to(dev))
+    depth[rays[ok]] = t_hit[rays[ok]]
+    color[rays[ok]] = col.float().cpu().numpy()
 
 
 def _window_reach(cfg: RenderConfig) -> float:
@@ -226,11 +248,14 @@ def _search_end(t_centre: np.ndarray, cfg: RenderConfig) -> np.ndarray:
 
 @torch.no_grad()
 def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, t_lo: np.ndarray,
-                    t_hi: np.ndarray, step: float, dev, chunk: int = 4096) -> np.ndarray:
+                    t_hi: np.ndarray, step: float, dev, chunk: int = 4096, exit_tolerance: float = 0.0) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
     ray between ``t_lo`` and ``t_hi`` (per ray), sampled every ``step`` where the samples lie in
     allocated voxels (only those are evaluated); a crossing lies between two neighbouring samples.
-    ``chunk`` rays are searched at a time."""
+    With ``exit_tolerance`` > 0, a ray that leaves the allocated voxels with the full SDF falling
+    and within (0, exit_tolerance] reaches the surface just behind the region's face, as in the
+    prior march: at its last sample plus the falling SDF's linear extrapolation to zero, at most one
+    step. ``chunk`` rays are searched at a time."""
     out = np.full(len(dirs), -1.0)
     if len(lookup.vv) == 0 or len(dirs) == 0:
         return out
@@ -257,11 +282,20 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         for a in range(0, len(pts), 1 << 18):  # bounded activations
             p = torch.from_numpy(pts[a:a + (1 << 18)].astype(np.float32)).to(dev)
             sdf[a:a + len(p)] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
-        cross = np.flatnonzero((ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)
-                               & (sdf[:-1] > 0) & (sdf[1:] <= 0))
+        pair = (ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)  # neighbours
+        cross = np.flatnonzero(pair & (sdf[:-1] > 0) & (sdf[1:] <= 0))
+        t_event = ts[cross] + (ts[cross + 1] - ts[cross]) * sdf[cross] / (sdf[cross] - sdf[cross + 1])
+        if exit_tolerance > 0:
+            # the last sample of a run of neighbours, the field falling into it and not yet at zero
+            j = np.flatnonzero(~np.append(pair, False) & np.insert(pair, 0, False)
+                               & (sdf > 0) & (sdf <= exit_tolerance))
+            j = j[sdf[j - 1] > sdf[j]]
+            reach = np.minimum(step, step * sdf[j] / (sdf[j - 1] - sdf[j]))
+            order = np.argsort(np.concatenate([cross, j]), kind="stable")  # along each ray
+            cross = np.concatenate([cross, j])[order]
+            t_event = np.concatenate([t_event, ts[j] + reach])[order]
         rays, first = np.unique(ray[cross], return_index=True)
-        k = cross[first]
-        out[s + rays] = ts[k] + (ts[k + 1] - ts[k]) * sdf[k] / (sdf[k] - sdf[k + 1])
+        out[s + rays] = t_event[first]
     return out
 
 
