@@ -23,7 +23,9 @@ Two stages per ray, both restricted to allocated leaf voxels:
    in for the weighted sum at a ninth of the cost.
 A window without a surface sends its ray on: the full SDF is searched from the window's last
 sample to the next prior crossing's window, and the ray renders at the first crossing of the two.
-Rays with no crossing or no weight render as depth 0, colour black.
+Rays still empty search the full SDF from ``near`` (``fallback_step``), where a ray that leaves
+the allocated voxels with the field falling and within ``exit_tolerance`` of zero also counts as
+reaching the surface; rays with none of these render as depth 0, colour black.
 """
 
 from __future__ import annotations
@@ -212,7 +214,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
             found = empty[t_hit[empty] > 0]
             if len(found):
                 missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
-                if len(missed):  # an exit's window can hold too little weight: the exit point is the surface
+                if len(missed):  # a window short of weight (mostly an exit's): the found point is the surface
                     _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color)
     return color, depth
 
