@@ -244,6 +244,30 @@ def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
     assert float(surface_color_loss(m.field, m.voxels, rays)) < 0.7 * before
 
 
+def test_surface_sdf_points_pull_the_zero_level_to_the_measured_surface(tiny_scene):
+    """``losses.surface_sdf``: the surface colour points also take SDF = 0 at their measured surface.
+    Trained on the same batch, the map with the term ends with its zero level nearer those points
+    than the map without it (0, the paper's, leaves the loss out of the step)."""
+    from h3edge.mapping.trainer import TrainConfig, surface_sdf_loss
+
+    seq = ReplicaSequence(tiny_scene)
+    f = seq[0]
+    ends = {}
+    for weight in (0.0, 50000.0):
+        settings = dataclasses.replace(LEAN, train=TrainConfig(surface_color_points=600),
+                                       losses=dataclasses.replace(LEAN.losses, surface_sdf=weight))
+        m = Mapper(settings)
+        assert m.process(f).mapped
+        current, _ = m._prepare(f)
+        rays = m._sample_rays([current, m.keyframes.keyframes[0].payload])
+        before = float(surface_sdf_loss(m.field, m.voxels, rays, m.voxels.cfg.truncation))
+        for _ in range(30):
+            losses = m._step(rays, "frame")
+        assert (losses["surface_sdf"] > 0) == (weight > 0)
+        ends[weight] = float(surface_sdf_loss(m.field, m.voxels, rays, m.voxels.cfg.truncation)) / before
+    assert ends[50000.0] < 0.5 * ends[0.0], ends
+
+
 def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     """``mapper.edge_rays``: that share of each frame's rays, keyframes' included, is drawn among the
     far side of its depth edges (the background beside a silhouette), with ``edge_rays_near_too``
