@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from h3edge.mapping.field import Field
@@ -124,12 +125,23 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     return torch.sort(cand.gather(1, pick), dim=1).values
 
 
-def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch) -> torch.Tensor | None:
-    """Mean L1 between the colour field at ``rays.surface_points`` and their pixels' colours, over
-    the points inside allocated voxels; None when there are none."""
+def locate_surface_points(voxels: VoxelMap, rays: RayBatch) -> tuple[np.ndarray, np.ndarray] | None:
+    """:meth:`VoxelMap.locate` of ``rays.surface_points`` (once a step for the losses that read
+    them), or None when the batch has none."""
     if rays.surface_points is None or len(rays.surface_points) == 0:
         return None
-    vox, _ = voxels.locate(rays.surface_points.detach().cpu().numpy())
+    return voxels.locate(rays.surface_points.detach().cpu().numpy())
+
+
+def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch,
+                       located: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor | None:
+    """Mean L1 between the colour field at ``rays.surface_points`` and their pixels' colours, over
+    the points inside allocated voxels; None when there are none. ``located``: the points'
+    :func:`locate_surface_points`, when already known."""
+    located = locate_surface_points(voxels, rays) if located is None else located
+    if located is None:
+        return None
+    vox = located[0]
     keep = torch.from_numpy(vox >= 0).to(rays.surface_points.device)
     if not keep.any():
         return None
@@ -138,16 +150,15 @@ def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch) ->
     return rgb_l1(pred, rays.surface_color[keep])
 
 
-def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, truncation: float) -> torch.Tensor | None:
+def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, truncation: float,
+                     located: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor | None:
     """Mean squared SDF (in metres, as the band's L_sdf) of the field at ``rays.surface_points``, the
-    measured surface, over the points inside allocated voxels; None when there are none."""
-    pts = rays.surface_points
-    if pts is None or len(pts) == 0:
+    measured surface, over the points inside allocated voxels; None when there are none.
+    ``located``: the points' :func:`locate_surface_points`, when already known."""
+    located = locate_surface_points(voxels, rays) if located is None else located
+    if located is None or not (located[0] >= 0).any():
         return None
-    located = voxels.locate(pts.detach().cpu().numpy())
-    if not (located[0] >= 0).any():
-        return None
-    sdf, inside = neural_field.sdf(pts, voxels, located)
+    sdf, inside = neural_field.sdf(rays.surface_points, voxels, located)
     return ((truncation * sdf[inside]) ** 2).mean()
 
 
@@ -193,10 +204,11 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
                              w.s3im_patch_width, generator)
     l_d = depth_l1(out.depth[hit], rays.depth[hit]) if hit.any() else sdf.sum() * 0
     loss = w.rgb * l_rgb + w.depth * l_d + w.free_space * fs + w.sdf * sdf_loss
-    l_surf = surface_color_loss(neural_field, voxels, rays)
+    located = locate_surface_points(voxels, rays)  # one lookup for both surface-point losses
+    l_surf = surface_color_loss(neural_field, voxels, rays, located)
     if l_surf is not None:
         loss = loss + w.surface_rgb * l_surf
-    l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr) if w.surface_sdf > 0 else None
+    l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr, located) if w.surface_sdf > 0 else None
     if l_surf_sdf is not None:
         loss = loss + w.surface_sdf * l_surf_sdf
     optimizer.zero_grad(set_to_none=True)
