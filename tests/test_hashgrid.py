@@ -185,3 +185,41 @@ def test_backends_agree_over_several_hash_functions(points):
         res[b] = (rows[order], g[order])
     assert torch.equal(res["torch"][0], res["numba"][0])
     assert torch.allclose(res["torch"][1], res["numba"][1], atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_coarsest_levels_only(backend, points):
+    """``levels=n``: the first n levels' features as the full encoding has them, zeros after; the
+    finer levels' table rows are neither read nor given a gradient."""
+    grid = make_grid(backend)
+    x = torch.tensor(points, dtype=torch.float32)
+    full = grid(x).detach()
+    F, T = SPEC.features, SPEC.table_size
+    for n in range(1, SPEC.levels + 1):
+        y = grid(x, levels=n)
+        assert y.shape == full.shape
+        assert torch.allclose(y[:, : n * F], full[:, : n * F], atol=1e-6)
+        assert (y[:, n * F:] == 0).all()
+        y.sum().backward()
+        rows, g = grid.take_sparse_grad()
+        assert len(rows) > 0 and int(rows.max()) < n * T  # no row of a level left out
+        assert torch.isfinite(g).all()
+    with pytest.raises(ValueError):
+        grid(x, levels=0)
+    with pytest.raises(ValueError):
+        grid(x, levels=SPEC.levels + 1)
+
+
+def test_coarsest_levels_backends_agree(points):
+    x = torch.tensor(points, dtype=torch.float32)
+    res = {}
+    for b in BACKENDS:
+        grid = HashGrid(SPEC, BOUND, hash_functions=(HashFunction(), WARP_FN), backend=b, init_scale=0.5, seed=3)
+        y = grid(x, levels=2) + grid(x * 0.5, fn=1, normalised=True, levels=3)
+        (y * torch.arange(SPEC.out_dim, dtype=torch.float32)).sum().backward()
+        rows, g = grid.take_sparse_grad()
+        order = torch.argsort(rows)
+        res[b] = (y.detach(), rows[order], g[order])
+    assert torch.allclose(res["torch"][0], res["numba"][0], atol=1e-6)
+    assert torch.equal(res["torch"][1], res["numba"][1])
+    assert torch.allclose(res["torch"][2], res["numba"][2], atol=1e-5)

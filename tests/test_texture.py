@@ -323,3 +323,46 @@ def test_scaling_warp_everywhere_gives_every_voxel_the_low_frequency_block():
     off, _ = _encoder(TextureConfig(scaling_everywhere=True, warp_weak=False))
     off.set_warps(ijk, 0.1, cls, dirs, np.array([0, 0, 1]))
     assert off.weak.tolist() == [False, False, False]
+
+
+def test_identity_block_can_leave_out_its_finest_levels():
+    """``identity_levels``: the identity block encodes only its coarsest levels (zeros after, no
+    gradient into the finer levels' rows through it); the warped blocks keep every level."""
+    ijk = np.array([[1, 1, 1], [3, 1, 1]])
+    dirs = np.zeros((2, 2, 3))
+    dirs[1, 0] = unit([1, 0, 0])
+    x = torch.tensor((ijk + 0.3) * 0.1, dtype=torch.float32)
+    feats = {}
+    for n in (0, 3):
+        enc, _ = _encoder(TextureConfig(scaling_everywhere=True, identity_levels=n))
+        enc.set_warps(ijk, 0.1, np.array([WEAK, RICH], np.int8), dirs, np.array([0, 1]))
+        enc.grid.table.data.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+        feats[n] = enc(x, torch.arange(2))
+    B, F = enc.block, enc.grid.spec.features
+    assert torch.allclose(feats[3][:, : 3 * F], feats[0][:, : 3 * F])
+    assert (feats[3][:, 3 * F: B] == 0).all() and (feats[0][:, 3 * F: B] != 0).all()
+    assert torch.allclose(feats[3][:, B:], feats[0][:, B:])  # warped blocks: every level
+    with pytest.raises(ValueError):
+        _encoder(TextureConfig(identity_levels=5))
+
+
+def test_level_mask_zeroes_one_level_of_one_block_and_restores():
+    """The texture-levels diagnostic (``h3edge.bench.texture_levels``) reads exactly one block's
+    level as zero inside its context and the encoder as trained after it."""
+    from h3edge.bench.texture_levels import LevelMask, level_columns
+
+    enc, _ = _encoder(TextureConfig(scaling_everywhere=True))
+    ijk = np.array([[1, 1, 1], [2, 1, 1]])
+    enc.set_warps(ijk, 0.1, np.array([WEAK, WEAK], np.int8), np.zeros((2, 2, 3)), np.array([0, 0]))
+    enc.grid.table.data.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+    x, vox = torch.tensor((ijk + 0.3) * 0.1, dtype=torch.float32), torch.arange(2)
+    full = enc(x, vox)
+    L, F = enc.grid.spec.levels, enc.grid.spec.features
+    cols = level_columns(1, 2, L, F)
+    assert cols == [1 * L * F + 2 * F + f for f in range(F)]
+    with LevelMask(enc, cols):
+        masked = enc(x, vox)
+    keep = [c for c in range(enc.out_dim) if c not in cols]
+    assert (masked[:, cols] == 0).all() and (full[:, cols] != 0).all()
+    assert torch.equal(masked[:, keep], full[:, keep])
+    assert torch.equal(enc(x, vox), full)

@@ -74,14 +74,16 @@ class HashFunction:
     dense: bool = True  # coarse levels that fit the table are indexed densely
 
 
-def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction = HashFunction()
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Row indices (N, L, 8) int64 into the (L*T, F) table and trilinear weights (N, L, 8)."""
+def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction = HashFunction(),
+                         levels: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row indices (N, L', 8) int64 into the (L*T, F) table and trilinear weights (N, L', 8) of the
+    ``levels`` = L' coarsest levels (None: all L)."""
     T = spec.table_size
     dev = xn.device
+    n_levels = spec.levels if levels is None else levels
     primes, d = fn.primes, fn.offsets
-    scales = torch.tensor(spec.level_scales(), dtype=xn.dtype, device=dev)
-    dense = torch.tensor(spec.level_dense() if fn.dense else np.zeros(spec.levels, np.int64), device=dev)
+    scales = torch.tensor(spec.level_scales()[:n_levels], dtype=xn.dtype, device=dev)
+    dense = torch.tensor((spec.level_dense() if fn.dense else np.zeros(spec.levels, np.int64))[:n_levels], device=dev)
     p = xn[:, None, :] * scales[None, :, None] + 0.5  # (N, L, 3)
     g = torch.floor(p)
     f = p - g
@@ -93,29 +95,33 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction 
     hashed = (v[..., 0] * primes[0] + d[0]) ^ (v[..., 1] * primes[1] + d[1]) ^ (v[..., 2] * primes[2] + d[2])
     in_dense = (side > 0) & ((v >= 0) & (v < side[..., None])).all(-1)
     idx = torch.where(in_dense, dense_idx, hashed) & (T - 1)
-    idx = idx + torch.arange(spec.levels, device=dev)[None, :, None] * T
+    idx = idx + torch.arange(n_levels, device=dev)[None, :, None] * T
     return idx, w
 
 
 class _TorchEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, xn, table, grid, fn):
-        idx, w = corner_indices_torch(xn, grid.spec, grid.hash_functions[fn])
+    def forward(ctx, xn, table, grid, fn, levels):
+        idx, w = corner_indices_torch(xn, grid.spec, grid.hash_functions[fn], levels)
         ctx.save_for_backward(idx, w)
         ctx.grid = grid
-        feats = table[idx]  # (N, L, 8, F)
-        return (feats * w[..., None]).sum(2).reshape(len(xn), grid.spec.out_dim)
+        feats = (table[idx] * w[..., None]).sum(2).reshape(len(xn), idx.shape[1] * grid.spec.features)  # (N, L' F)
+        if feats.shape[1] < grid.spec.out_dim:  # the levels left out read as zeros
+            feats = torch.nn.functional.pad(feats, (0, grid.spec.out_dim - feats.shape[1]))
+        return feats
 
     @staticmethod
     def backward(ctx, grad_out):
         idx, w = ctx.saved_tensors
         grid = ctx.grid
         F = grid.spec.features
-        contrib = (grad_out.reshape(len(idx), grid.spec.levels, 1, F) * w[..., None]).reshape(-1, F)
+        n_levels = idx.shape[1]
+        g_out = grad_out[:, : n_levels * F].reshape(len(idx), n_levels, 1, F)
+        contrib = (g_out * w[..., None]).reshape(-1, F)
         rows, inv = torch.unique(idx.reshape(-1), return_inverse=True)
         g = torch.zeros(len(rows), F, dtype=grad_out.dtype, device=grad_out.device).index_add_(0, inv, contrib)
         grid._accumulate(rows, g)
-        return None, None, None, None
+        return None, None, None, None, None
 
 
 def _numba_kernels():
@@ -125,25 +131,28 @@ def _numba_kernels():
 
 
 class _NumbaEncode(torch.autograd.Function):
+    # The kernels loop over len(scales) levels: the first ``levels`` scales (and dense sides)
+    # encode the coarsest levels only, into the first columns of a full-width output.
     @staticmethod
-    def forward(ctx, xn, table, grid, fn):
+    def forward(ctx, xn, table, grid, fn, levels):
         fwd = grid._kernels()[0]
         x = xn.detach().numpy()
-        out = np.empty((len(x), grid.spec.out_dim), np.float32)
+        n = grid.spec.levels if levels is None else levels
+        out = (np.empty if n == grid.spec.levels else np.zeros)((len(x), grid.spec.out_dim), np.float32)
         dense, consts = grid._fn_np[fn]
-        fwd(x, table.detach().numpy(), grid._scales_np, dense, grid.spec.table_size, *consts, out)
-        ctx.grid, ctx.x, ctx.fn = grid, x, fn
+        fwd(x, table.detach().numpy(), grid._scales_np[:n], dense[:n], grid.spec.table_size, *consts, out)
+        ctx.grid, ctx.x, ctx.fn, ctx.n_levels = grid, x, fn, n
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        grid, x = ctx.grid, ctx.x
+        grid, x, n = ctx.grid, ctx.x, ctx.n_levels
         bwd = grid._kernels()[1]
         dense, consts = grid._fn_np[ctx.fn]
-        bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np, dense,
+        bwd(x, np.ascontiguousarray(grad_out.detach().numpy(), dtype=np.float32), grid._scales_np[:n], dense[:n],
             grid.spec.table_size, *consts, grid._grad_buf.numpy(), grid._touched.numpy())
         grid._numba_pending = True  # gradients and flags accumulate across calls until taken
-        return None, None, None, None
+        return None, None, None, None, None
 
 
 class HashGrid(torch.nn.Module):
@@ -232,14 +241,18 @@ class HashGrid(torch.nn.Module):
         """Coordinates relative to the reference cube ([0, 1]^3 inside it; not clamped)."""
         return (x - self.bound_min) / self.bound_size
 
-    def forward(self, x: torch.Tensor, fn: int = 0, normalised: bool = False) -> torch.Tensor:
-        """Features of world points ``x`` (anywhere), or of ``normalised`` coordinates
+    def forward(self, x: torch.Tensor, fn: int = 0, normalised: bool = False, levels: int | None = None
+                ) -> torch.Tensor:
+        """Features (N, L*F) of world points ``x`` (anywhere), or of ``normalised`` coordinates
         taken as they are (warped spaces may leave [0, 1]^3; hashing does not care), through hash
-        function ``fn``."""
+        function ``fn``. ``levels``: only the coarsest ``levels`` levels are encoded; the others
+        read 0, are never looked up and take no gradient (None: all)."""
+        if levels is not None and not 1 <= levels <= self.spec.levels:
+            raise ValueError(f"levels must be in [1, {self.spec.levels}], got {levels}")
         xn = x.to(torch.float32).contiguous() if normalised else self.normalise(x.to(torch.float32)).contiguous()
         if self.backend == "numba":
-            return _NumbaEncode.apply(xn, self.table, self, fn)
-        return _TorchEncode.apply(xn, self.table, self, fn)
+            return _NumbaEncode.apply(xn, self.table, self, fn, levels)
+        return _TorchEncode.apply(xn, self.table, self, fn, levels)
 
     def _accumulate(self, rows: torch.Tensor, grads: torch.Tensor) -> None:
         self._pending.append((rows, grads))

@@ -54,6 +54,8 @@ class QuasiHeteroTexture(nn.Module):
         M = cfg.max_directions
         if M + 2 > len(WARP_HASHES):
             raise ValueError(f"max_directions {M} > {len(WARP_HASHES) - 2}: add hash functions to WARP_HASHES")
+        if not 0 <= cfg.identity_levels <= spec.levels:
+            raise ValueError(f"identity_levels must be in [0, {spec.levels}] (0: all), got {cfg.identity_levels}")
         self.cfg = cfg
         self.grid = HashGrid(spec, bound, hash_functions=WARP_HASHES[: M + 2], backend=backend, seed=seed,
                              device=device)
@@ -106,7 +108,7 @@ class QuasiHeteroTexture(nn.Module):
     def forward(self, points: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor:
         xn = self.grid.normalise(points.to(torch.float32))
         n = len(xn)
-        blocks = [self.grid(xn, fn=0, normalised=True)]
+        blocks = [self.grid(xn, fn=0, normalised=True, levels=self.cfg.identity_levels or None)]
         known = (voxel_index >= 0) & (voxel_index < len(self.weak))
         vox = torch.where(known, voxel_index, torch.zeros_like(voxel_index))
         zeros = lambda: torch.zeros(n, self.block, device=xn.device, dtype=blocks[0].dtype)  # noqa: E731

@@ -54,6 +54,12 @@ class TextureConfig:
     line_depth_jump: float = 0.05  # m, a segment whose depth steps more than this between pixels is dropped
     min_line_length: float = 10.0  # px, shorter segments are ignored
     stride: int = 2  # pixel stride for the per-voxel gradient statistics (counts scaled back)
+    # levels of the identity-space block, coarsest first (0: all of field.tex_levels, the paper's).
+    # At a CPU budget (2 x ~1,800 rays a frame) the finest identity level (3.7 mm cells) is trained
+    # but not used: zeroing it moves the colours by 0.15 / 255 on studio's surfaces. Leaving it out
+    # (3) is a departure measured in two runs: sim +0.14 / +0.22 dB, studio -0.01 / +0.40 dB, real
+    # +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 % faster (docs/textures.md)
+    identity_levels: int = 0
 
 
 def line_rotation(d: np.ndarray) -> np.ndarray:
