@@ -56,9 +56,10 @@ class TextureConfig:
     stride: int = 2  # pixel stride for the per-voxel gradient statistics (counts scaled back)
     # levels of the identity-space block, coarsest first (0: all of field.tex_levels, the paper's).
     # At a CPU budget (2 x ~1,800 rays a frame) the finest identity level (3.7 mm cells) is trained
-    # but not used: zeroing it moves the colours by 0.15 / 255 on studio's surfaces. Leaving it out
-    # (3) is a departure measured in two runs: sim +0.14 / +0.22 dB, studio -0.01 / +0.40 dB, real
-    # +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 % faster (docs/textures.md)
+    # but not used: zeroing it moves studio's surface colours by 0.12 / 255 and held-out PSNR by
+    # 0.00 dB. Leaving it out (3) is a departure measured in two runs: sim +0.14 / +0.22 dB, studio
+    # -0.01 / +0.40 dB, real +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 % faster; at orin-agx's
+    # 8,192 rays no difference (docs/textures.md)
     identity_levels: int = 0
 
 
