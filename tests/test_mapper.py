@@ -353,3 +353,17 @@ def _ray_pixels(rays, f) -> np.ndarray:
     u = np.rint(cam[:, 0] / cam[:, 2] * k.fx + k.cx - PIXEL_CENTER_OFFSET).astype(int)
     v = np.rint(cam[:, 1] / cam[:, 2] * k.fy + k.cy - PIXEL_CENTER_OFFSET).astype(int)
     return v * k.width + u
+
+
+def test_grid_cell_sets_the_hash_grids_level0_cell_apart_from_the_voxel():
+    """``field.grid_cell`` 0 keeps the paper's one level-0 cell per leaf voxel; a value in metres
+    keeps the grids' resolution when the leaf voxel (the priors' lattice) changes."""
+    bound = np.array([[-2.0] * 3, [2.0] * 3])
+    cfg = FieldConfig(geo_log2_table=10, tex_log2_table=10)
+    paper = Field(cfg, bound, 0.1)
+    halved = Field(cfg, bound, 0.05)
+    kept = Field(FieldConfig(geo_log2_table=10, tex_log2_table=10, grid_cell=0.1), bound, 0.05)
+    assert paper.geo_grid.spec.base_resolution == 40
+    assert halved.geo_grid.spec.base_resolution == 80
+    assert kept.geo_grid.spec.base_resolution == 40
+    assert kept.texture.grid.spec.base_resolution == 40

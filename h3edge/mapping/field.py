@@ -40,6 +40,9 @@ class FieldConfig:
     # beta: width of the volume-rendering kernel sigma(s/beta) sigma(-s/beta) on this field's SDF
     # (truncation units, authors: 0.05), used by training and by rendering alike
     beta: float = 0.05
+    # m: the hash grids' level-0 cell. 0 = one cell per octree leaf voxel (the paper's); a value
+    # keeps the grids' resolution fixed while the leaf voxel (the priors' lattice) changes
+    grid_cell: float = 0.0
 
 
 def mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
@@ -63,7 +66,8 @@ class Field(nn.Module):
                  texture: TextureConfig = TextureConfig()):
         super().__init__()
         self.cfg = cfg
-        base = int(np.ceil((bound[1] - bound[0]).max() / voxel_size))  # one level-0 cell per leaf voxel
+        cell = cfg.grid_cell if cfg.grid_cell > 0 else voxel_size  # paper: one level-0 cell per leaf voxel
+        base = int(np.ceil((bound[1] - bound[0]).max() / cell))
         geo = HashGridSpec(cfg.geo_levels, cfg.geo_features, cfg.geo_log2_table, base, cfg.geo_level_scale)
         tex = HashGridSpec(cfg.tex_levels, cfg.tex_features, cfg.tex_log2_table, base, cfg.tex_level_scale)
         self.geo_grid = HashGrid(geo, bound, backend=cfg.backend, seed=1, device=device)
