@@ -71,8 +71,9 @@ class TrainConfig:
     carve_margin: float = 0.03  # m: depth noise and pose error a view must see past
     carve_stride: int = 4  # pixels per side of the pooled depth blocks a view keeps for the test
     # pixels per iteration whose colour trains the colour field at their measured surface point,
-    # besides the rays (0: the paper's, colour only through volume rendering; the device profiles
-    # set 2048: sim +0.8 dB, studio +0.6 dB, real and Replica unchanged, docs/continuous_training.md)
+    # besides the rays (0: the paper's, colour only through volume rendering; the Orin profiles set
+    # 2048: sim +0.8 dB, studio +0.6 dB, real and Replica unchanged; x86-cpu 8192 with its third
+    # iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09; docs/continuous_training.md)
     surface_color_points: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
 
