@@ -1,10 +1,10 @@
 """Benchmark: the mapper's frame time on a sequence, for the checkout on ``PYTHONPATH``.
 
-Maps every frame of a sequence directory with a profile (no evaluation) and prints one JSON line:
-the median and mean of the mapper's per-frame times and the wall time. It imports only what the
-issue-15 filing code (``fc74dcc``) also has, so two checkouts can be compared head to head on the
-same data, alternating, one process each (run it by path so the checkout under test is the
-``h3edge`` imported)::
+Maps every frame of a sequence directory with a profile (no evaluation) and prints a one-row
+table, appended as a JSON line to ``--out``: the median and mean of the mapper's per-frame times
+and the wall time. It imports only what the issue-15 filing code (``fc74dcc``) also has, so two
+checkouts can be compared head to head on the same data, alternating, one process each (run it by
+path so that the checkout under test is the ``h3edge`` imported)::
 
     for round in 1 2; do for c in /path/to/old /path/to/new; do
       PYTHONPATH=$c python h3edge/bench/frame_time.py ../shared/data/7scenes_redkitchen_dev --label $c
@@ -36,8 +36,10 @@ def frame_times(sequence: str, profile: str, overrides: list[str]) -> dict:
     """Map every frame of ``sequence``; the frame time summary (ms) and the wall time (s)."""
     settings = load_profile(profile).map_settings()
     if overrides:
-        from h3edge.config import apply_overrides
-
+        try:
+            from h3edge.config import apply_overrides
+        except ImportError as exc:  # the filing code maps its profile as it is
+            raise SystemExit(f"--set needs a checkout with h3edge.config.apply_overrides: {exc}") from exc
         settings = apply_overrides(settings, overrides)
     mapper = Mapper(settings)
     t0 = time.perf_counter()
@@ -54,10 +56,16 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="", help="a name for the row (the checkout)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="change the profile's setting")
+    ap.add_argument("--out", help="append the row to this JSON-lines file")
     args = ap.parse_args(argv)
     row = {"label": args.label, "sequence": args.sequence, "profile": args.profile, "set": args.set,
            **frame_times(args.sequence, args.profile, args.set)}
-    sys.stdout.write(json.dumps(row) + "\n")
+    sys.stdout.write("| label | frames | frame median [ms] | frame mean [ms] | wall [s] |\n|---|---|---|---|---|\n"
+                     f"| {row['label']} | {row['frames']} | {row['median_ms']:.0f} | {row['mean_ms']:.0f} | "
+                     f"{row['wall_s']:.1f} |\n")
+    if args.out:
+        with open(args.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
     return 0
 
 
