@@ -367,3 +367,5 @@ def test_grid_cell_sets_the_hash_grids_level0_cell_apart_from_the_voxel():
     assert halved.geo_grid.spec.base_resolution == 80
     assert kept.geo_grid.spec.base_resolution == 40
     assert kept.texture.grid.spec.base_resolution == 40
+    with pytest.raises(ValueError, match="grid_cell"):
+        Field(FieldConfig(grid_cell=-0.1), bound, 0.05)

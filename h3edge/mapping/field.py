@@ -66,7 +66,9 @@ class Field(nn.Module):
                  texture: TextureConfig = TextureConfig()):
         super().__init__()
         self.cfg = cfg
-        cell = cfg.grid_cell if cfg.grid_cell > 0 else voxel_size  # paper: one level-0 cell per leaf voxel
+        if not cfg.grid_cell >= 0:
+            raise ValueError(f"field.grid_cell must be >= 0 m (0: the leaf voxel), got {cfg.grid_cell}")
+        cell = cfg.grid_cell or voxel_size  # paper: one level-0 cell per leaf voxel
         base = int(np.ceil((bound[1] - bound[0]).max() / cell))
         geo = HashGridSpec(cfg.geo_levels, cfg.geo_features, cfg.geo_log2_table, base, cfg.geo_level_scale)
         tex = HashGridSpec(cfg.tex_levels, cfg.tex_features, cfg.tex_log2_table, base, cfg.tex_level_scale)
