@@ -44,6 +44,10 @@ class FieldConfig:
     # keeps the grids' resolution fixed while the leaf voxel (the priors' lattice) changes
     grid_cell: float = 0.0
 
+    def __post_init__(self):
+        if not self.grid_cell >= 0:  # refused when the profile loads, not at the first frame
+            raise ValueError(f"field.grid_cell must be >= 0 m (0: the leaf voxel), got {self.grid_cell}")
+
 
 def mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
     mods: list[nn.Module] = []
@@ -66,8 +70,6 @@ class Field(nn.Module):
                  texture: TextureConfig = TextureConfig()):
         super().__init__()
         self.cfg = cfg
-        if not cfg.grid_cell >= 0:
-            raise ValueError(f"field.grid_cell must be >= 0 m (0: the leaf voxel), got {cfg.grid_cell}")
         cell = cfg.grid_cell or voxel_size  # paper: one level-0 cell per leaf voxel
         base = int(np.ceil((bound[1] - bound[0]).max() / cell))
         geo = HashGridSpec(cfg.geo_levels, cfg.geo_features, cfg.geo_log2_table, base, cfg.geo_level_scale)
