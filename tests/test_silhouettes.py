@@ -361,6 +361,29 @@ def test_band_targets_behind_a_thin_board_give_way_to_other_views():
     assert carved < 0.85 * without, (without, carved)
 
 
+def test_space_most_frames_saw_through_stays_free_with_cell_votes():
+    """Fine free-space votes (``votes.cell``): the band samples behind the board's face in cells
+    the majority of the frames saw through take no negative target, and points drawn in those
+    cells take s >= 0, so fewer of the points some view saw through read inside; the board itself
+    keeps its inside."""
+    from h3edge.mapping.cell_votes import VoteConfig
+
+    _, train = board_views(16)
+    seen_free, core = board_probes(train)
+    base = dataclasses.replace(SETTINGS, mapper=dataclasses.replace(SETTINGS.mapper, iterations=6, edge_radius=0),
+                               train=dataclasses.replace(SETTINGS.train, carve_behind=False))
+
+    def shares(votes: VoteConfig) -> tuple[float, float]:
+        m = mapped(train, dataclasses.replace(base, votes=votes))
+        f, vox = sdf_at(m, seen_free)
+        b, _ = sdf_at(m, core)
+        return float(np.mean(f[vox >= 0] < 0)), float(np.mean(b > 0))
+
+    (phantom_off, holes_off), (phantom, holes) = shares(VoteConfig()), shares(VoteConfig(cell=0.01, points=4096))
+    assert phantom < 0.7 * phantom_off, (phantom_off, phantom)
+    assert holes < holes_off + 0.05, (holes_off, holes)
+
+
 def test_mesh_leaves_out_unobserved_cubes(block):
     """Fewer mesh samples far (> 5 cm) from the true surface with the support rule, little lost."""
     from h3edge.eval.metrics import mesh_to_mesh
@@ -377,31 +400,37 @@ def test_mesh_leaves_out_unobserved_cubes(block):
 
 
 @pytest.mark.xfail(strict=True, reason="open (issue 15): the band's negative SDF targets behind the slats fill the "
-                   "3 cm gaps (sdf_behind = 0 opens them, and costs the real set its pixels behind; "
-                   "docs/silhouettes.md)")
+                   "3 cm gaps at this test's 32 training steps (sdf_behind = 0 opens them, and costs the real set "
+                   "its pixels behind; docs/silhouettes.md)")
 def test_slat_gaps_are_seen_through(scene, fixed):
-    """Pixels in the gaps between slats render at the wall, not at the slats (no fused blob)."""
-    assert gap_pixels_at_wall(fixed, scene[1][7]) > 0.9
+    """Pixels between the slats render at the wall, not at the slats (no fused blob), at least as
+    many as TSDF fusion at 1 cm on the same 16 frames opens (measured 0.47-0.51 in views 5, 7, 9)."""
+    assert gap_pixels_at_wall(fixed, scene[1][7]) > 0.45
 
 
 def test_slat_gaps_open_without_sdf_targets_behind_the_depth(scene, fixed):
     """The cause of the filled gaps above, pinned: the slat rays' negative SDF targets behind their
     measured depth. Without them (``train.sdf_behind = 0``) the same training opens the gaps
-    (measured 45 % -> 93 % of gap pixels at the wall); the real set needs the targets (its pixels
-    behind 1.7 -> 6.8 % at 1 cm, docs/silhouettes.md)."""
+    (measured 0 % -> 93 % of the pixels between the slats at the wall); the real set needs the
+    targets (its pixels behind 1.7 -> 6.8 % at 1 cm, docs/silhouettes.md)."""
     none_behind = mapped(scene[0], dataclasses.replace(SETTINGS, train=dataclasses.replace(SETTINGS.train,
                                                                                           sdf_behind=0.0)))
     opened, filled = gap_pixels_at_wall(none_behind, scene[1][7]), gap_pixels_at_wall(fixed, scene[1][7])
     assert opened > 0.8, opened
-    assert filled < 0.6, filled
+    assert filled < 0.2, filled
 
 
 def gap_pixels_at_wall(m: Mapper, f: Frame) -> float:
-    """Share of the held-out view's pixels that see the wall between the slats and render within
-    5 cm of it."""
+    """Share of the held-out view's pixels that see the wall between two slats (their ray crosses
+    the slats' front plane between the slats' bottom and top) and render within 5 cm of it. The
+    wall below and above the slats is left out: it is no gap (every map renders it)."""
     _, depth = m.render(f.intrinsics, f.pose)
-    gap = (f.depth > 1.9) & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None]
-    return float(np.mean(np.abs(depth[gap] - f.depth[gap]) < 0.05))
+    k = f.intrinsics
+    rows, cols = np.nonzero((f.depth > 1.9) & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None])
+    rays = np.stack([(cols + 0.5 - k.cx) / k.fx, (rows + 0.5 - k.cy) / k.fy, np.ones(len(cols))], 1) @ f.pose[:3, :3].T
+    z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]  # height where the ray crosses y = 1.19
+    gap = (z > 0.6) & (z < 1.2)
+    return float(np.mean(np.abs(depth[rows[gap], cols[gap]] - f.depth[rows[gap], cols[gap]]) < 0.05))
 
 
 def test_defaults_are_the_fixed_ones():

@@ -31,6 +31,8 @@ class LossWeights:
     # Measured at 50000 (docs/continuous_training.md): Depth L1 -18 % sim, -15 % studio, but the real
     # Kinect sequence loses 0.010 SSIM and gains pixels in front; off in every profile
     surface_sdf: float = 0.0
+    # SDF >= 0 in cells the frames voted free (votes.points; not in the paper), on L_sdf's scale
+    seen_free: float = 50000.0
     s3im: bool = True
     s3im_kernel: int = 4
     s3im_stride: int = 4

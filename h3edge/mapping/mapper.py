@@ -32,6 +32,7 @@ import trimesh
 from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, rigid_error
 from h3edge.geometry.depth_edges import discontinuity_jump, near_side_of_edges
 from h3edge.io.sequence import Frame
+from h3edge.mapping.cell_votes import CellVotes, VoteConfig
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
 from h3edge.mapping.gradient import color_gradient
@@ -138,6 +139,7 @@ class MapSettings:
     texture: TextureConfig = dataclasses.field(default_factory=TextureConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     free_space: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
+    votes: VoteConfig = dataclasses.field(default_factory=VoteConfig)
 
 
 @dataclass
@@ -208,6 +210,8 @@ class Mapper:
         self.keyframes = KeyframeSet(settings.keyframes)
         self.patterns = TexturePatterns(settings.texture)
         self.free_space = FreeSpace(settings.free_space, settings.voxels.voxel_size, settings.voxels.truncation)
+        self.cell_votes = CellVotes(settings.votes, settings.voxels.voxel_size, settings.train.sdf_behind,
+                                    settings.voxels.max_voxels)
         # keys of the voxels allocated or observed since the last take_changed_keys() (live mesh updates)
         self._changed: list[np.ndarray] = []
         self.timings = Timings()
@@ -321,6 +325,9 @@ class Mapper:
             return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
         with self.timings.time("free_space"):
             self.free_space.mark(current.depth, frame.intrinsics, current.pose)
+        if self.cell_votes.enabled:
+            with self.timings.time("cell_votes"):
+                self.cell_votes.mark(self.voxels, current.depth, frame.intrinsics, current.pose)
         if self.field is None:  # the first frame that maps places the grids' reference cube
             self._place_field(current.pose[:3, 3])
         grad = self._determine_texture(current, pts)
@@ -396,8 +403,8 @@ class Mapper:
 
     def _step(self, rays: RayBatch, when: str) -> dict:
         losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.settings.render.near,
-                            self.generator,
-                            self.prior_opt)
+                            self.generator, self.prior_opt,
+                            self.cell_votes if self.cell_votes.enabled else None)
         self.iterations[when] += 1
         if self.step_hook is not None:
             self.step_hook()
@@ -521,6 +528,7 @@ class Mapper:
             pmeta, parrays = part.state_dict()
             meta.update(_renamed_meta(prefix, pmeta))
             arrays.update(_prefixed(prefix, parrays))
+        arrays.update(_prefixed("votes", self.cell_votes.state_dict()))
         return meta, arrays
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
@@ -565,6 +573,7 @@ class Mapper:
         self.patterns.load_state_dict(_original_meta("patterns", meta), _unprefixed("patterns", arrays))
         if "free/keys" in arrays:  # checkpoints from before the free-space record have none
             self.free_space.load_state_dict(meta, _unprefixed("free", arrays))
+        self.cell_votes.load_state_dict(_unprefixed("votes", arrays))
         self.frames_mapped = int(meta["frames_mapped"])
         self.dropped = dict(meta["dropped"])
         self.last_timestamp = meta["last_timestamp"]
@@ -611,6 +620,7 @@ class Mapper:
                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                 "texture_patterns": self.patterns.nbytes,
                 "free_space": self.free_space.nbytes,
+                "cell_votes": self.cell_votes.nbytes,
             },
         }
 

@@ -17,6 +17,10 @@ is off by default. The full-ray sampling is what novel-view rendering uses.
 Band samples behind the measured depth take a negative SDF target, except (``carve_behind``) where
 another view of the batch measured a depth more than ``carve_margin`` beyond them
 (:mod:`h3edge.mapping.visibility`): behind a thin object those targets would fill free space.
+With fine free-space votes (:mod:`h3edge.mapping.cell_votes`, ``votes.cell`` > 0), they also take
+none in cells the majority of all mapped frames saw through, and ``votes.points`` points drawn in
+such cells take the sign term relu(-s)^2 (weight ``weights.seen_free``): space most views saw
+through must not read inside.
 
 Surface colour points (``surface_color_points``, a departure from the paper, which trains colour
 only through volume rendering): more pixels of the same frames, back-projected with their
@@ -35,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from h3edge.mapping.cell_votes import CellVotes
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
 from h3edge.mapping.visibility import PooledDepth, seen_through
@@ -163,12 +168,30 @@ def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, trun
     return ((truncation * sdf[inside]) ** 2).mean()
 
 
+def seen_free_loss(neural_field: Field, voxels: VoxelMap, votes: CellVotes | None, truncation: float,
+                   generator: torch.Generator | None = None) -> torch.Tensor | None:
+    """Mean squared negative part of the SDF (in metres, as L_sdf) at ``votes.cfg.points`` points
+    drawn in cells the frames voted free (:meth:`CellVotes.sample_free`): space most views saw
+    through must not read inside. None without votes or points."""
+    if votes is None or votes.cfg.points <= 0:
+        return None
+    pts = votes.sample_free(votes.cfg.points, voxels, generator)
+    if len(pts) == 0:
+        return None
+    dev = next(neural_field.parameters()).device
+    sdf, inside = neural_field.sdf(torch.from_numpy(pts.astype(np.float32)).to(dev), voxels)
+    if not inside.any():
+        return None
+    return ((truncation * torch.relu(-sdf[inside])) ** 2).mean()
+
+
 def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
                cfg: TrainConfig, near: float, generator: torch.Generator | None = None,
-               prior_opt: PriorAdam | None = None) -> dict[str, float]:
+               prior_opt: PriorAdam | None = None, votes: CellVotes | None = None) -> dict[str, float]:
     """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
     lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows. Free-space
-    samples start at ``near`` (m)."""
+    samples start at ``near`` (m). ``votes``: band samples behind the depth in cells the frames
+    voted free take no SDF target (:mod:`h3edge.mapping.cell_votes`)."""
     tr = voxels.cfg.truncation
     t, b0 = sample_depths(rays.depth, cfg, tr, near, generator)
     if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
@@ -187,9 +210,15 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
         0, band_in, neural_field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
     out = composite(sdf[:, b0:], t[:, b0:], col, neural_field.cfg.beta, inside[:, b0:], color_mask=need)
     sdf_mask, carved = inside, 0.0
-    if cfg.carve_behind and rays.views:
+    use_views, use_votes = cfg.carve_behind and bool(rays.views), votes is not None
+    if use_views or use_votes:
         behind = inside & (t > rays.depth[:, None])
-        free = seen_through(pts[behind].detach(), rays.views, cfg.carve_margin)
+        free = torch.zeros(int(behind.sum()), dtype=torch.bool, device=flat.device)
+        if use_views:
+            free |= seen_through(pts[behind].detach(), rays.views, cfg.carve_margin)
+        if use_votes:
+            mask = behind.reshape(-1).cpu().numpy()
+            free |= torch.from_numpy(votes.seen_free(vox[mask], frac[mask])).to(flat.device)
         sdf_mask = inside.clone()
         sdf_mask[behind] = ~free
         carved = float(free.float().mean()) if len(free) else 0.0
@@ -212,6 +241,9 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr, located) if w.surface_sdf > 0 else None
     if l_surf_sdf is not None:
         loss = loss + w.surface_sdf * l_surf_sdf
+    l_free_cells = seen_free_loss(neural_field, voxels, votes, tr, generator) if w.seen_free > 0 else None
+    if l_free_cells is not None:
+        loss = loss + w.seen_free * l_free_cells
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -221,4 +253,5 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
             "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean()),
             "carved": carved, "surface_rgb": float(l_surf.detach()) if l_surf is not None else 0.0,
-            "surface_sdf": float(l_surf_sdf.detach()) if l_surf_sdf is not None else 0.0}
+            "surface_sdf": float(l_surf_sdf.detach()) if l_surf_sdf is not None else 0.0,
+            "seen_free": float(l_free_cells.detach()) if l_free_cells is not None else 0.0}

@@ -36,11 +36,14 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
                              + (ingest_queue + 1) * ENCODED_BYTES_PER_PIXEL)
     # observed free space at its cap (keys, sorted keys, ids), twice: the map and a query's copy
     free = 2 * 24 * settings.free_space.max_cells if settings.free_space.enabled else 0
-    left = budget - tables - voxels - snapshot - working - checkpoint - frames - free
+    # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy
+    v = settings.votes
+    votes = 2 * settings.voxels.max_voxels * round(settings.voxels.voxel_size / v.cell) ** 3 if v.cell > 0 else 0
+    left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
             "query_working_set": working, "checkpoint_capture": checkpoint, "frame_buffers": frames,
-            "free_space": free,
+            "free_space": free, "cell_votes": votes,
             "keyframes": max(0, left),
             "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap),
             "keyframe_cap_bytes": max(left, 8 * keyframe_bytes),  # the keyframe set's byte cap (max_bytes)

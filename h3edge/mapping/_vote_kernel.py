@@ -1,0 +1,80 @@
+"""Fused numba CPU kernel of the fine free-space votes (see :mod:`h3edge.mapping.cell_votes`):
+every cell of the given voxels projected into one depth image, its vote moved by what the pixel
+it falls on measured.
+
+Module-level so numba's on-disk cache is reused across processes.
+"""
+
+import math
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(parallel=True, cache=True)
+def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, margin, behind):
+    """For voxel ``ids[i]`` with its minimum corner ``corners[i]`` (world, m), each of its n^3
+    cells (centre at ``corner + (a + 0.5, b + 0.5, c + 0.5) * cell``, flat index ``(a * n + b) * n
+    + c``): with ``s`` = the measured z-depth at the pixel the centre projects to minus the centre's
+    z, ``votes[ids[i], cell] += 1`` where ``s > margin`` (seen free) and ``-= 1`` where ``-behind <=
+    s <= 0`` (just behind the measured surface), saturating at +-127. ``rot``, ``trans``: world to
+    camera. Pixels with no valid depth (0, NaN, inf) leave the cell as it is."""
+    h, w = depth.shape
+    for i in nb.prange(len(ids)):
+        row = ids[i]
+        # the first cell's centre in camera coordinates, and one cell's step along each world axis
+        p0 = corners[i] + 0.5 * cell
+        c0 = rot[:, 0] * p0[0] + rot[:, 1] * p0[1] + rot[:, 2] * p0[2] + trans
+        for a in range(n):
+            for b in range(n):
+                x = c0[0] + cell * (a * rot[0, 0] + b * rot[0, 1])
+                y = c0[1] + cell * (a * rot[1, 0] + b * rot[1, 1])
+                z = c0[2] + cell * (a * rot[2, 0] + b * rot[2, 1])
+                base = (a * n + b) * n
+                for c in range(n):
+                    if c:
+                        x += cell * rot[0, 2]
+                        y += cell * rot[1, 2]
+                        z += cell * rot[2, 2]
+                    if z <= 1e-3:
+                        continue
+                    inv = 1.0 / z
+                    u = math.floor(fx * x * inv + cx)
+                    v = math.floor(fy * y * inv + cy)
+                    if u < 0 or u >= w or v < 0 or v >= h:
+                        continue
+                    d = depth[v, u]
+                    if not (d > 0.0) or not math.isfinite(d):
+                        continue
+                    s = d - z
+                    k = base + c
+                    if s > margin:
+                        if votes[row, k] < 127:
+                            votes[row, k] += 1
+                    elif s <= 0.0 and s >= -behind:
+                        if votes[row, k] > -127:
+                            votes[row, k] -= 1
+
+
+@nb.njit(parallel=True, cache=True)
+def in_view(corners, rot, trans, fx, fy, cx, cy, w, h, size, out):
+    """``out[i]`` = some corner of the cube at ``corners[i]`` (side ``size``) lies in front of the
+    camera and its bounding box of projected corners overlaps the image, or the cube straddles the
+    camera plane (a cheap, conservative cull)."""
+    for i in nb.prange(len(corners)):
+        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+        front, back = False, False
+        for k in range(8):
+            px = corners[i, 0] + size * (k & 1)
+            py = corners[i, 1] + size * ((k >> 1) & 1)
+            pz = corners[i, 2] + size * ((k >> 2) & 1)
+            z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
+            if z <= 1e-3:
+                back = True
+                continue
+            front = True
+            x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
+            y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
+            u, v = fx * x / z + cx, fy * y / z + cy
+            umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
+        out[i] = front and (back or (umax >= 0 and umin < w and vmax >= 0 and vmin < h))

@@ -1,0 +1,180 @@
+"""Fine free-space votes: inside every allocated leaf voxel, a grid of small cells (1 cm by default)
+that every mapped frame's full-resolution depth votes on, as a TSDF fuses its signs.
+
+Why: a band sample behind its own ray's measured depth takes a negative SDF target. Behind a thin
+object (a chair's slats, a shelf's edge) those targets lie in the space other views see through,
+and they fill it (docs/silhouettes.md). :mod:`h3edge.mapping.visibility` tests that against the
+views of one training batch, from pooled depth; its blocks are blind within a few pixels of an
+outline, and a batch holds few views. These votes keep what every frame saw, at every pixel:
+
+- a cell whose centre projects onto valid depth more than ``margin`` beyond it gains a vote (the
+  ray passed through it);
+- a cell within ``behind`` behind the measured depth loses one (where the band puts its targets).
+
+A band sample behind the depth whose cell's net vote is at least ``min_votes`` takes no SDF target
+(:func:`h3edge.mapping.trainer.train_step`): the majority of the frames that looked at the cell
+saw through it. Each frame's vote is one per cell (the pixel its centre falls on), so many frames
+that saw a cell free outvote a few that put it just behind a surface, and noise that reads a
+surface a little too far now and then does not carve it.
+
+Cost: one int8 a cell (1,000 bytes a 10 cm voxel at 1 cm cells); per frame one parallel pass over
+the cells of the voxels in the view frustum (:mod:`h3edge.mapping._vote_kernel`).
+
+Usage::
+
+    votes = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    votes.mark(voxels, depth, intrinsics, pose)         # per frame, after allocation
+    free = votes.seen_free(vox, frac)                   # (N,) bool for located points
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from h3edge.geometry.camera import Intrinsics, invert_pose
+from h3edge.mapping.trilinear import CORNERS
+from h3edge.mapping.voxels import VoxelMap, unpack
+
+
+@dataclass(frozen=True)
+class VoteConfig:
+    # m, side of a vote cell (0: no votes, the paper's: every band sample behind the depth is a target);
+    # must divide the leaf voxel into whole cells
+    cell: float = 0.0
+    margin: float = 0.03  # m beyond a cell the measured depth must lie for a free vote (noise, pose error)
+    min_votes: int = 1  # net votes (free minus just-behind) for a cell to count as seen free
+    # points per training step drawn in cells seen free, where the field must not read inside
+    # (weights.seen_free); 0: the votes only take band targets away
+    points: int = 0
+
+    def __post_init__(self) -> None:
+        if not (self.cell >= 0):
+            raise ValueError(f"votes.cell must be >= 0 m, got {self.cell}")
+        if not (self.margin >= 0):
+            raise ValueError(f"votes.margin must be >= 0 m, got {self.margin}")
+        if not 1 <= self.min_votes <= 127:
+            raise ValueError(f"votes.min_votes must be in 1..127, got {self.min_votes}")
+
+
+class CellVotes:
+    """Net free votes per cell of every allocated voxel (rows by voxel id); ``mark`` per frame,
+    ``seen_free`` per training step."""
+
+    def __init__(self, cfg: VoteConfig, voxel_size: float, behind: float, max_voxels: int = 1 << 62):
+        self.cfg, self.voxel_size, self.behind = cfg, voxel_size, behind
+        self.n = int(round(voxel_size / cfg.cell)) if cfg.cell > 0 else 0
+        if self.n and abs(self.n * cfg.cell - voxel_size) > 1e-6:
+            raise ValueError(f"votes.cell {cfg.cell} m does not divide the {voxel_size} m voxel")
+        self.max_voxels = max_voxels  # the map's voxel cap: storage never grows past it
+        self._store = np.zeros((0, self.n ** 3), np.int8)  # rows by voxel id, capacity >= rows
+        self.rows = 0
+
+    @property
+    def votes(self) -> np.ndarray:
+        """(voxels voted on, cells) int8 net free votes (a view of the storage)."""
+        return self._store[:self.rows]
+
+    @votes.setter
+    def votes(self, value: np.ndarray) -> None:
+        self._store, self.rows = np.asarray(value, np.int8), len(value)
+
+    @property
+    def enabled(self) -> bool:
+        return self.n > 0
+
+    @property
+    def nbytes(self) -> int:
+        return self._store.nbytes
+
+    def _grow(self, n_voxels: int) -> None:
+        """Rows for ``n_voxels`` voxels; the storage doubles (up to the voxel cap), so a growing
+        map copies its votes O(log n) times, not every frame."""
+        if n_voxels > len(self._store):
+            cap = max(n_voxels, min(2 * len(self._store), self.max_voxels))
+            grown = np.zeros((cap, self.n ** 3), np.int8)
+            grown[:self.rows] = self._store[:self.rows]
+            self._store = grown
+        self.rows = max(self.rows, n_voxels)
+
+    def mark(self, voxels: VoxelMap, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray) -> int:
+        """Vote with one frame: ``depth`` cleaned z-depth (0 = invalid) measured from ``pose``
+        (camera to world) on the voxels of ``voxels``; returns how many voxels were in view."""
+        if not self.enabled or len(voxels) == 0:
+            return 0
+        from h3edge.mapping import _vote_kernel as k
+
+        self._grow(len(voxels))
+        corners = unpack(voxels.voxel_keys).astype(np.float64) * self.voxel_size
+        w2c = invert_pose(np.asarray(pose, np.float64))
+        rot, trans = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
+        h, w = depth.shape
+        seen = np.empty(len(corners), np.bool_)
+        k.in_view(corners, rot, trans, intr.fx, intr.fy, intr.cx, intr.cy, w, h, self.voxel_size, seen)
+        ids = np.flatnonzero(seen)
+        if len(ids):
+            k.vote_cells(np.ascontiguousarray(corners[ids]), ids, self._store, np.ascontiguousarray(depth, np.float32),
+                         rot, trans, intr.fx, intr.fy, intr.cx, intr.cy, self.cfg.cell, self.n,
+                         self.cfg.margin, self.behind)
+        return len(ids)
+
+    def seen_free(self, vox: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """(N,) bool: the cell at each located point (``vox`` voxel id, -1 = none; ``frac`` its
+        position in the voxel, [0, 1]^3, as :meth:`VoxelMap.locate` returns) has at least
+        ``min_votes`` net free votes."""
+        out = np.zeros(len(vox), bool)
+        ok = (vox >= 0) & (vox < len(self.votes))
+        if not self.enabled or not ok.any():
+            return out
+        c = np.clip(np.floor(frac[ok] * self.n).astype(np.int64), 0, self.n - 1)
+        flat = (c[:, 0] * self.n + c[:, 1]) * self.n + c[:, 2]
+        out[ok] = self.votes[vox[ok], flat] >= self.cfg.min_votes
+        return out
+
+    def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
+                    near_prior: float = 1.0) -> np.ndarray:
+        """Up to ``n`` world points (P, 3) uniformly inside cells seen free where the SDF prior reads
+        less than ``near_prior`` (truncation units: near a surface the priors put there, where a
+        wrong inside can be; open space reads +1), rejection-sampled from ``16 n`` random cells."""
+        rows = min(len(self.votes), len(voxels))
+        if not self.enabled or n <= 0 or rows == 0:
+            return np.zeros((0, 3))
+        m = 16 * n
+        dev = generator.device if generator is not None else "cpu"
+        r = torch.randint(0, rows, (m,), generator=generator, device=dev).cpu().numpy()
+        c = torch.randint(0, self.n ** 3, (m,), generator=generator, device=dev).cpu().numpy()
+        jitter = torch.rand((m, 3), generator=generator, device=dev, dtype=torch.float64).cpu().numpy()
+        ok = np.flatnonzero(self.votes[r, c] >= self.cfg.min_votes)
+        keep = np.zeros(0, np.int64)
+        for lo in range(0, len(ok), 2 * n):  # the prior only where needed: the first n that pass
+            part = ok[lo:lo + 2 * n]
+            cell = c[part]
+            ijk = np.stack([cell // (self.n * self.n), (cell // self.n) % self.n, cell % self.n], 1)
+            prior = _trilinear_prior(voxels, r[part], (ijk + jitter[part]) / self.n)
+            keep = np.concatenate([keep, part[prior < near_prior]])
+            if len(keep) >= n:
+                break
+        keep = keep[:n]
+        cell = c[keep]
+        ijk = np.stack([cell // (self.n * self.n), (cell // self.n) % self.n, cell % self.n], 1)
+        return (unpack(voxels.voxel_keys[r[keep]]) + (ijk + jitter[keep]) / self.n) * self.voxel_size
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"votes": self.votes.copy()}
+
+    def load_state_dict(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore saved votes; a state saved without votes, or at another cell size, starts with
+        none (every cell undecided)."""
+        v = arrays.get("votes")
+        ok = v is not None and v.ndim == 2 and v.shape[1] == self.n ** 3
+        self.votes = np.asarray(v, np.int8).copy() if ok else np.zeros((0, self.n ** 3), np.int8)
+
+
+def _trilinear_prior(voxels: VoxelMap, vox: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """The SDF prior (truncation units) at positions ``frac`` inside voxels ``vox`` (no gradient;
+    corner order of :mod:`h3edge.mapping.trilinear`)."""
+    pri = voxels.priors.detach().cpu().numpy()[voxels.voxel_vertices[vox]]  # (N, 8)
+    w = np.where(CORNERS[None].astype(bool), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)
+    return (pri * w).sum(1)

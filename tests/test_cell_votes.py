@@ -1,0 +1,123 @@
+"""Fine free-space votes (:mod:`h3edge.mapping.cell_votes`): what one frame votes, majorities across
+frames, the lookup the trainer uses, the free-cell sampler and the state."""
+
+import numpy as np
+import pytest
+import torch
+
+from h3edge.geometry.camera import Intrinsics, look_at
+from h3edge.mapping.cell_votes import CellVotes, VoteConfig
+from h3edge.mapping.voxels import VoxelConfig, VoxelMap
+
+INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
+FRONT = look_at(np.zeros(3), np.array([0.0, 1.0, 0.0]))  # looking along +y at a wall 2 m away
+SIDE = look_at(np.array([2.0, 2.0, 0.0]), np.array([0.0, 2.0, 0.0]))  # looking along -x, 4 m deep
+# cell centres on the axis (x, z = 5 mm: off the voxel faces): 7.5 cm in front of the wall, 1.5 cm
+# in front (within the margin), 1.5 cm behind, 8.5 cm behind (past the band)
+PROBES = np.array([[0.005, 1.925, 0.005], [0.005, 1.985, 0.005], [0.005, 2.015, 0.005], [0.005, 2.085, 0.005]])
+
+
+def wall_map() -> VoxelMap:
+    vm = VoxelMap(VoxelConfig(voxel_size=0.1, min_points=1))
+    vm.allocate(np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    return vm
+
+
+def votes_at(cv: CellVotes, vm: VoxelMap, pts: np.ndarray) -> np.ndarray:
+    vox, frac = vm.locate(pts)
+    assert (vox >= 0).all()
+    c = np.floor(frac * cv.n).astype(int)
+    return cv.votes[vox, (c[:, 0] * cv.n + c[:, 1]) * cv.n + c[:, 2]]
+
+
+def test_a_frame_votes_free_in_front_and_inside_just_behind_its_depth():
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01, margin=0.03), voxel_size=0.1, behind=0.05)
+    wall = np.full((INTR.height, INTR.width), 2.0, np.float32)
+    assert cv.mark(vm, wall, INTR, FRONT) == len(vm)  # every voxel is in view
+    assert votes_at(cv, vm, PROBES).tolist() == [1, 0, -1, 0]
+    cv.mark(vm, wall, INTR, FRONT)
+    assert votes_at(cv, vm, PROBES).tolist() == [2, 0, -2, 0]
+    holes = wall.copy()
+    holes[:] = np.nan  # no valid depth: no vote either way
+    cv.mark(vm, holes, INTR, FRONT)
+    assert votes_at(cv, vm, PROBES).tolist() == [2, 0, -2, 0]
+    assert cv.seen_free(*vm.locate(PROBES)).tolist() == [True, False, False, False]
+
+
+def test_the_majority_of_frames_decides_behind_a_thin_wall():
+    """The cell 1.5 cm behind the front view's wall: inside for that view, seen through by a side
+    view that measures 4 m past it. One vote each is a tie (not free); a second side frame decides."""
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    side = np.full((INTR.height, INTR.width), 4.0, np.float32)
+    cv.mark(vm, side, INTR, SIDE)
+    assert not cv.seen_free(*vm.locate(PROBES[2:3]))[0]
+    cv.mark(vm, side, INTR, SIDE)
+    assert cv.seen_free(*vm.locate(PROBES[2:3]))[0]
+    strict = CellVotes(VoteConfig(cell=0.01, min_votes=3), voxel_size=0.1, behind=0.05)
+    strict.votes = cv.votes
+    assert not strict.seen_free(*vm.locate(PROBES[2:3]))[0]
+
+
+def test_votes_saturate_and_points_outside_the_map_are_not_free():
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.02), voxel_size=0.1, behind=0.05)
+    assert cv.n == 5 and cv.nbytes == 0
+    wall = np.full((INTR.height, INTR.width), 2.0, np.float32)
+    for _ in range(130):
+        cv.mark(vm, wall, INTR, FRONT)
+    assert cv.votes.max() == 127 and cv.votes.min() == -127 and cv.nbytes == len(vm) * 125
+    vox, frac = vm.locate(np.array([[5.0, 5.0, 5.0]]))
+    assert vox[0] == -1 and not cv.seen_free(vox, frac)[0]
+
+
+def test_off_by_default_and_a_cell_must_divide_the_voxel():
+    cv = CellVotes(VoteConfig(), voxel_size=0.1, behind=0.05)
+    assert not cv.enabled and cv.mark(wall_map(), np.ones((48, 64), np.float32), INTR, FRONT) == 0
+    with pytest.raises(ValueError, match="divide"):
+        CellVotes(VoteConfig(cell=0.03), voxel_size=0.1, behind=0.05)
+    for bad in ({"cell": -0.01}, {"cell": float("nan")}, {"margin": -1.0}, {"min_votes": 0}, {"min_votes": 200}):
+        with pytest.raises(ValueError):
+            VoteConfig(**bad)
+
+
+def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    gen = torch.Generator().manual_seed(0)
+    pts = cv.sample_free(500, vm, gen)
+    assert 0 < len(pts) <= 500
+    assert cv.seen_free(*vm.locate(pts)).all()
+    assert (pts[:, 1] < 2.0 - 0.03 + 0.01).all()  # in front of the wall, beyond the margin (cell-rounded)
+    with torch.no_grad():
+        prior, _ = vm.coarse_sdf(torch.from_numpy(pts))
+    assert (prior.numpy() < 1.0).all()
+    assert len(cv.sample_free(0, vm, gen)) == 0
+
+
+def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    back = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    back.load_state_dict(cv.state_dict())
+    assert np.array_equal(back.votes, cv.votes)
+    other = CellVotes(VoteConfig(cell=0.02), voxel_size=0.1, behind=0.05)
+    other.load_state_dict(cv.state_dict())
+    assert other.votes.shape == (0, 125)
+    other.load_state_dict({})
+    assert other.votes.shape == (0, 125)
+
+
+def test_storage_grows_by_doubling_keeps_the_votes_and_stops_at_the_voxel_cap():
+    cv = CellVotes(VoteConfig(cell=0.05), voxel_size=0.1, behind=0.05, max_voxels=10)
+    cv._grow(3)
+    cv.votes[:] = 5
+    cv._grow(4)
+    assert cv.votes.shape == (4, 8) and len(cv._store) == 6 and (cv.votes[:3] == 5).all() and (cv.votes[3] == 0).all()
+    cv._grow(7)
+    assert len(cv._store) == 10 and cv.rows == 7  # doubling capped at max_voxels
+    assert (cv.votes[:3] == 5).all()
