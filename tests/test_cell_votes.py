@@ -78,9 +78,17 @@ def test_off_by_default_and_a_cell_must_divide_the_voxel():
     assert not cv.enabled and cv.mark(wall_map(), np.ones((48, 64), np.float32), INTR, FRONT) == 0
     with pytest.raises(ValueError, match="divide"):
         CellVotes(VoteConfig(cell=0.03), voxel_size=0.1, behind=0.05)
-    for bad in ({"cell": -0.01}, {"cell": float("nan")}, {"margin": -1.0}, {"min_votes": 0}, {"min_votes": 200}):
+    for bad in ({"cell": -0.01}, {"cell": float("nan")}, {"margin": -1.0}, {"min_votes": 0}, {"min_votes": 200},
+                {"points": -1}):
         with pytest.raises(ValueError):
             VoteConfig(**bad)
+    with pytest.raises(ValueError, match="more than"):
+        CellVotes(VoteConfig(cell=0.001), voxel_size=0.1, behind=0.05)  # 10^9 bytes a voxel
+    from h3edge.config import apply_overrides
+    from h3edge.mapping.mapper import MapSettings
+
+    with pytest.raises(ValueError, match="divide"):  # refused when the profile loads
+        apply_overrides(MapSettings(), ["votes.cell=0.03"])
 
 
 def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():

@@ -38,6 +38,8 @@ from h3edge.geometry.camera import Intrinsics, invert_pose
 from h3edge.mapping.trilinear import CORNERS
 from h3edge.mapping.voxels import VoxelMap, unpack
 
+MAX_CELLS_PER_SIDE = 32  # 32 KB of votes a voxel
+
 
 @dataclass(frozen=True)
 class VoteConfig:
@@ -57,6 +59,20 @@ class VoteConfig:
             raise ValueError(f"votes.margin must be >= 0 m, got {self.margin}")
         if not 1 <= self.min_votes <= 127:
             raise ValueError(f"votes.min_votes must be in 1..127, got {self.min_votes}")
+        if self.points < 0:
+            raise ValueError(f"votes.points must be >= 0, got {self.points}")
+
+    def cells_per_side(self, voxel_size: float) -> int:
+        """Cells along a leaf voxel's side (0: votes off); ValueError unless ``cell`` divides the
+        voxel into at most ``MAX_CELLS_PER_SIDE`` cells a side (1 byte a cell)."""
+        if self.cell == 0:
+            return 0
+        n = int(round(voxel_size / self.cell))
+        if n < 1 or abs(n * self.cell - voxel_size) > 1e-6:
+            raise ValueError(f"votes.cell {self.cell} m does not divide the {voxel_size} m voxel")
+        if n > MAX_CELLS_PER_SIDE:
+            raise ValueError(f"votes.cell {self.cell} m: {n} cells a voxel side, more than {MAX_CELLS_PER_SIDE}")
+        return n
 
 
 class CellVotes:
@@ -65,9 +81,7 @@ class CellVotes:
 
     def __init__(self, cfg: VoteConfig, voxel_size: float, behind: float, max_voxels: int = 1 << 62):
         self.cfg, self.voxel_size, self.behind = cfg, voxel_size, behind
-        self.n = int(round(voxel_size / cfg.cell)) if cfg.cell > 0 else 0
-        if self.n and abs(self.n * cfg.cell - voxel_size) > 1e-6:
-            raise ValueError(f"votes.cell {cfg.cell} m does not divide the {voxel_size} m voxel")
+        self.n = cfg.cells_per_side(voxel_size)
         self.max_voxels = max_voxels  # the map's voxel cap: storage never grows past it
         self._store = np.zeros((0, self.n ** 3), np.int8)  # rows by voxel id, capacity >= rows
         self.rows = 0

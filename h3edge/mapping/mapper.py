@@ -141,6 +141,9 @@ class MapSettings:
     free_space: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
     votes: VoteConfig = dataclasses.field(default_factory=VoteConfig)
 
+    def __post_init__(self) -> None:
+        self.votes.cells_per_side(self.voxels.voxel_size)  # refused when the profile loads, not at the first frame
+
 
 @dataclass
 class FrameResult:
