@@ -96,14 +96,15 @@ def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():
     cv = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
     cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
     gen = torch.Generator().manual_seed(0)
-    pts = cv.sample_free(500, vm, gen)
+    pts, vox, frac = cv.sample_free(500, vm, gen)
     assert 0 < len(pts) <= 500
+    assert np.allclose(vm.locate(pts)[0], vox) and np.allclose(vm.locate(pts)[1], frac)
     assert cv.seen_free(*vm.locate(pts)).all()
     assert (pts[:, 1] < 2.0 - 0.03 + 0.01).all()  # in front of the wall, beyond the margin (cell-rounded)
     with torch.no_grad():
         prior, _ = vm.coarse_sdf(torch.from_numpy(pts))
     assert (prior.numpy() < 1.0).all()
-    assert len(cv.sample_free(0, vm, gen)) == 0
+    assert len(cv.sample_free(0, vm, gen)[0]) == 0
 
 
 def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():

@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics, invert_pose
-from h3edge.mapping.trilinear import CORNERS
 from h3edge.mapping.voxels import VoxelMap, unpack
 
 MAX_CELLS_PER_SIDE = 32  # 32 KB of votes a voxel
@@ -148,32 +147,33 @@ class CellVotes:
         return out
 
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
-                    near_prior: float = 1.0) -> np.ndarray:
+                    near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to ``n`` world points (P, 3) uniformly inside cells seen free where the SDF prior reads
         less than ``near_prior`` (truncation units: near a surface the priors put there, where a
-        wrong inside can be; open space reads +1), rejection-sampled from ``16 n`` random cells."""
+        wrong inside can be; open space reads +1), rejection-sampled from ``16 n`` random cells;
+        with their voxel ids (P,) and positions in the voxel (P, 3), as :meth:`VoxelMap.locate`."""
         rows = min(len(self.votes), len(voxels))
         if not self.enabled or n <= 0 or rows == 0:
-            return np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3))
         m = 16 * n
         dev = generator.device if generator is not None else "cpu"
         r = torch.randint(0, rows, (m,), generator=generator, device=dev).cpu().numpy()
         c = torch.randint(0, self.n ** 3, (m,), generator=generator, device=dev).cpu().numpy()
         jitter = torch.rand((m, 3), generator=generator, device=dev, dtype=torch.float64).cpu().numpy()
-        ok = np.flatnonzero(self.votes[r, c] >= self.cfg.min_votes)
+        ok = self.votes[r, c] >= self.cfg.min_votes
+        vox = r[ok]
+        frac = (np.stack(np.unravel_index(c[ok], (self.n,) * 3), 1) + jitter[ok]) / self.n
+        pts = (unpack(voxels.voxel_keys[vox]) + frac) * self.voxel_size
         keep = np.zeros(0, np.int64)
-        for lo in range(0, len(ok), 2 * n):  # the prior only where needed: the first n that pass
-            part = ok[lo:lo + 2 * n]
-            cell = c[part]
-            ijk = np.stack([cell // (self.n * self.n), (cell // self.n) % self.n, cell % self.n], 1)
-            prior = _trilinear_prior(voxels, r[part], (ijk + jitter[part]) / self.n)
-            keep = np.concatenate([keep, part[prior < near_prior]])
+        for lo in range(0, len(vox), 2 * n):  # the prior only where needed: the first n that pass
+            part = np.arange(lo, min(lo + 2 * n, len(vox)))
+            with torch.no_grad():
+                prior, _ = voxels.coarse_sdf(torch.from_numpy(pts[part]), (vox[part], frac[part]))
+            keep = np.concatenate([keep, part[prior.cpu().numpy() < near_prior]])
             if len(keep) >= n:
                 break
         keep = keep[:n]
-        cell = c[keep]
-        ijk = np.stack([cell // (self.n * self.n), (cell // self.n) % self.n, cell % self.n], 1)
-        return (unpack(voxels.voxel_keys[r[keep]]) + (ijk + jitter[keep]) / self.n) * self.voxel_size
+        return pts[keep], vox[keep], frac[keep]
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"votes": self.votes.copy()}
@@ -185,10 +185,3 @@ class CellVotes:
         ok = v is not None and v.ndim == 2 and v.shape[1] == self.n ** 3
         self.votes = np.asarray(v, np.int8).copy() if ok else np.zeros((0, self.n ** 3), np.int8)
 
-
-def _trilinear_prior(voxels: VoxelMap, vox: np.ndarray, frac: np.ndarray) -> np.ndarray:
-    """The SDF prior (truncation units) at positions ``frac`` inside voxels ``vox`` (no gradient;
-    corner order of :mod:`h3edge.mapping.trilinear`)."""
-    pri = voxels.priors.detach().cpu().numpy()[voxels.voxel_vertices[vox]]  # (N, 8)
-    w = np.where(CORNERS[None].astype(bool), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)
-    return (pri * w).sum(1)

@@ -175,11 +175,11 @@ def seen_free_loss(neural_field: Field, voxels: VoxelMap, votes: CellVotes | Non
     through must not read inside. None without votes or points."""
     if votes is None or votes.cfg.points <= 0:
         return None
-    pts = votes.sample_free(votes.cfg.points, voxels, generator)
+    pts, vox, frac = votes.sample_free(votes.cfg.points, voxels, generator)
     if len(pts) == 0:
         return None
     dev = next(neural_field.parameters()).device
-    sdf, inside = neural_field.sdf(torch.from_numpy(pts.astype(np.float32)).to(dev), voxels)
+    sdf, inside = neural_field.sdf(torch.from_numpy(pts.astype(np.float32)).to(dev), voxels, (vox, frac))
     if not inside.any():
         return None
     return ((truncation * torch.relu(-sdf[inside])) ** 2).mean()

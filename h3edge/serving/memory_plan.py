@@ -37,8 +37,7 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     # observed free space at its cap (keys, sorted keys, ids), twice: the map and a query's copy
     free = 2 * 24 * settings.free_space.max_cells if settings.free_space.enabled else 0
     # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy
-    v = settings.votes
-    votes = 2 * settings.voxels.max_voxels * round(settings.voxels.voxel_size / v.cell) ** 3 if v.cell > 0 else 0
+    votes = 2 * settings.voxels.max_voxels * settings.votes.cells_per_side(settings.voxels.voxel_size) ** 3
     left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
