@@ -84,6 +84,8 @@ class CellVotes:
         self.max_voxels = max_voxels  # the map's voxel cap: storage never grows past it
         self._store = np.zeros((0, self.n ** 3), np.int8)  # rows by voxel id, capacity >= rows
         self.rows = 0
+        self._marks = 0  # frames voted with (and replaced votes): keys the free-cell cache
+        self._free: tuple[tuple, np.ndarray] | None = None  # (key, free_cells' answer)
 
     @property
     def votes(self) -> np.ndarray:
@@ -93,6 +95,7 @@ class CellVotes:
     @votes.setter
     def votes(self, value: np.ndarray) -> None:
         self._store, self.rows = np.asarray(value, np.int8), len(value)
+        self._marks += 1  # the free-cell cache is stale
 
     @property
     def enabled(self) -> bool:
@@ -120,6 +123,7 @@ class CellVotes:
         from h3edge.mapping import _vote_kernel as k
 
         self._grow(len(voxels))
+        self._marks += 1
         corners = unpack(voxels.voxel_keys).astype(np.float64) * self.voxel_size
         w2c = invert_pose(np.asarray(pose, np.float64))
         rot, trans = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
@@ -146,34 +150,43 @@ class CellVotes:
         out[ok] = self.votes[vox[ok], flat] >= self.cfg.min_votes
         return out
 
+    def free_cells(self, voxels: VoxelMap, near_prior: float = 1.0) -> np.ndarray:
+        """Flat indices (voxel id * cells + cell) of the cells with at least ``min_votes`` net free
+        votes whose centre's SDF prior reads less than ``near_prior`` (truncation units: near a
+        surface the priors put there, where a wrong inside can be; open space reads +1).
+
+        Computed once per voted frame (cached until the next :meth:`mark`, a load, or a new voxel
+        count), so every training step draws from it in O(points); the priors move little within
+        a frame's iterations (:func:`h3edge.mapping._vote_kernel.free_cells`)."""
+        rows = min(len(self.votes), len(voxels))
+        key = (self._marks, rows, near_prior)
+        if self._free is not None and self._free[0] == key:
+            return self._free[1]
+        free = np.zeros(0, np.int64)
+        if self.enabled and rows:
+            from h3edge.mapping import _vote_kernel as k
+
+            corner = voxels.priors.detach().cpu().numpy()[voxels.voxel_vertices[:rows]]  # (rows, 8)
+            free = k.free_cells(self.votes[:rows], np.ascontiguousarray(corner, np.float32), self.n,
+                                self.cfg.min_votes, np.float32(near_prior))
+        self._free = (key, free)
+        return free
+
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
                     near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Up to ``n`` world points (P, 3) uniformly inside cells seen free where the SDF prior reads
-        less than ``near_prior`` (truncation units: near a surface the priors put there, where a
-        wrong inside can be; open space reads +1), rejection-sampled from ``16 n`` random cells;
-        with their voxel ids (P,) and positions in the voxel (P, 3), as :meth:`VoxelMap.locate`."""
-        rows = min(len(self.votes), len(voxels))
-        if not self.enabled or n <= 0 or rows == 0:
+        """``n`` world points (P, 3), uniform inside cells of :meth:`free_cells` (drawn with
+        replacement; none when there is no such cell), with their voxel ids (P,) and positions in
+        the voxel (P, 3), as :meth:`VoxelMap.locate` returns them."""
+        free = self.free_cells(voxels, near_prior) if n > 0 else np.zeros(0, np.int64)
+        if len(free) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3))
-        m = 16 * n
         dev = generator.device if generator is not None else "cpu"
-        r = torch.randint(0, rows, (m,), generator=generator, device=dev).cpu().numpy()
-        c = torch.randint(0, self.n ** 3, (m,), generator=generator, device=dev).cpu().numpy()
-        jitter = torch.rand((m, 3), generator=generator, device=dev, dtype=torch.float64).cpu().numpy()
-        ok = self.votes[r, c] >= self.cfg.min_votes
-        vox = r[ok]
-        frac = (np.stack(np.unravel_index(c[ok], (self.n,) * 3), 1) + jitter[ok]) / self.n
+        pick = free[torch.randint(0, len(free), (n,), generator=generator, device=dev).cpu().numpy()]
+        jitter = torch.rand((n, 3), generator=generator, device=dev, dtype=torch.float64).cpu().numpy()
+        vox, cell = np.divmod(pick, self.n ** 3)
+        frac = (np.stack(np.unravel_index(cell, (self.n,) * 3), 1) + jitter) / self.n
         pts = (unpack(voxels.voxel_keys[vox]) + frac) * self.voxel_size
-        keep = np.zeros(0, np.int64)
-        for lo in range(0, len(vox), 2 * n):  # the prior only where needed: the first n that pass
-            part = np.arange(lo, min(lo + 2 * n, len(vox)))
-            with torch.no_grad():
-                prior, _ = voxels.coarse_sdf(torch.from_numpy(pts[part]), (vox[part], frac[part]))
-            keep = np.concatenate([keep, part[prior.cpu().numpy() < near_prior]])
-            if len(keep) >= n:
-                break
-        keep = keep[:n]
-        return pts[keep], vox[keep], frac[keep]
+        return pts, vox, frac
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"votes": self.votes.copy()}

@@ -168,18 +168,10 @@ def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, trun
     return ((truncation * sdf[inside]) ** 2).mean()
 
 
-def seen_free_loss(neural_field: Field, voxels: VoxelMap, votes: CellVotes | None, truncation: float,
-                   generator: torch.Generator | None = None) -> torch.Tensor | None:
-    """Mean squared negative part of the SDF (in metres, as L_sdf) at ``votes.cfg.points`` points
-    drawn in cells the frames voted free (:meth:`CellVotes.sample_free`): space most views saw
-    through must not read inside. None without votes or points."""
-    if votes is None or votes.cfg.points <= 0:
-        return None
-    pts, vox, frac = votes.sample_free(votes.cfg.points, voxels, generator)
-    if len(pts) == 0:
-        return None
-    dev = next(neural_field.parameters()).device
-    sdf, inside = neural_field.sdf(torch.from_numpy(pts.astype(np.float32)).to(dev), voxels, (vox, frac))
+def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float) -> torch.Tensor | None:
+    """Mean squared negative part of the SDF ``sdf`` (truncation units; in metres, as L_sdf) at
+    points drawn in cells the frames voted free (:meth:`CellVotes.sample_free`), over those in a
+    voxel (``inside``): space most views saw through must not read inside. None when there are none."""
     if not inside.any():
         return None
     return ((truncation * torch.relu(-sdf[inside])) ** 2).mean()
@@ -200,7 +192,18 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
     flat = pts.reshape(-1, 3)
     vox, frac = voxels.locate(flat.detach().cpu().numpy())
-    sdf, inside = neural_field.sdf(flat, voxels, (vox, frac))
+    free_pts = None  # points in cells voted free, (world, voxel ids, positions in the voxel)
+    if votes is not None and votes.cfg.points > 0 and cfg.weights.seen_free > 0:
+        free_pts = votes.sample_free(votes.cfg.points, voxels, generator)
+        free_pts = free_pts if len(free_pts[0]) else None
+    if free_pts is not None:  # one field evaluation for the ray samples and the seen-free points
+        p, pv, pf = free_pts
+        located = (np.concatenate([vox, pv]), np.concatenate([frac, pf]))
+        both, both_in = neural_field.sdf(torch.cat([flat, torch.from_numpy(p.astype(np.float32)).to(flat.device)]),
+                                         voxels, located)
+        sdf, inside, free_sdf, free_in = both[:r * s], both_in[:r * s], both[r * s:], both_in[r * s:]
+    else:
+        sdf, inside = neural_field.sdf(flat, voxels, (vox, frac))
     sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
     band_pts = pts[:, b0:].reshape(-1, 3)
     band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
@@ -241,7 +244,7 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr, located) if w.surface_sdf > 0 else None
     if l_surf_sdf is not None:
         loss = loss + w.surface_sdf * l_surf_sdf
-    l_free_cells = seen_free_loss(neural_field, voxels, votes, tr, generator) if w.seen_free > 0 else None
+    l_free_cells = seen_free_loss(free_sdf, free_in, tr) if free_pts is not None else None
     if l_free_cells is not None:
         loss = loss + w.seen_free * l_free_cells
     optimizer.zero_grad(set_to_none=True)
