@@ -104,15 +104,20 @@ def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():
     with torch.no_grad():
         prior, _ = vm.coarse_sdf(torch.from_numpy(pts))
     assert (prior.numpy() < 1.0).all()
+    c = np.floor(frac * cv.n).astype(int)
+    cells = vox * cv.n ** 3 + (c[:, 0] * cv.n + c[:, 1]) * cv.n + c[:, 2]
+    assert np.isin(cells, cv.free_cells(vm, np.arange(len(vm)))).all()  # the cells free_cells lists
     assert len(cv.sample_free(0, vm, gen)[0]) == 0
+    again = cv.sample_free(500, vm, torch.Generator().manual_seed(0))
+    assert np.array_equal(again[0], pts)  # reproducible from the generator
 
 
-def test_free_cells_are_the_voted_cells_whose_centre_prior_reads_near_a_surface_and_follow_new_votes():
+def test_free_cells_are_the_voted_cells_whose_centre_prior_reads_near_a_surface():
     vm = wall_map()
     cv = CellVotes(VoteConfig(cell=0.02, min_votes=2), voxel_size=0.1, behind=0.05)
     cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
     rng = np.random.default_rng(0)
-    cv.votes = rng.integers(-3, 4, cv.votes.shape).astype(np.int8)  # replaced votes: the cache is stale
+    cv.votes[:] = rng.integers(-3, 4, cv.votes.shape)
     vm.priors = torch.from_numpy(rng.uniform(-1.5, 2.5, len(vm.priors)).astype(np.float32))
     cells = np.arange(cv.n ** 3)
     frac = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n  # every cell's centre
@@ -121,11 +126,10 @@ def test_free_cells_are_the_voted_cells_whose_centre_prior_reads_near_a_surface_
         prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3), (vox, np.tile(frac, (len(vm), 1))))
     want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
     assert 0 < len(want) < cv.votes.size
-    assert np.array_equal(cv.free_cells(vm, near_prior=0.5), want)
-    cv.votes[:] = 0  # not seen until the next frame votes: the cells stay cached for the frame's steps
-    assert np.array_equal(cv.free_cells(vm, near_prior=0.5), want)
-    cv.mark(vm, np.zeros((INTR.height, INTR.width), np.float32), INTR, FRONT)  # a frame with no valid depth
-    assert len(cv.free_cells(vm, near_prior=0.5)) == 0
+    assert np.array_equal(cv.free_cells(vm, np.arange(len(vm)), near_prior=0.5), want)
+    some = np.array([len(vm) - 1, 2, 0, -1, len(vm)])  # any order; ids outside the map are skipped
+    got = cv.free_cells(vm, some, near_prior=0.5)
+    assert np.array_equal(np.sort(got), want[np.isin(want // cv.n ** 3, some)])
 
 
 def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():

@@ -122,3 +122,37 @@ def free_cells(votes, corner, n, min_votes, near):
     for i in nb.prange(rows):
         _free_in_row(votes, corner, i, n, min_votes, near, out, starts[i])
     return out
+
+
+@nb.njit(cache=True)
+def draw_free_cells(votes, corner, n, min_votes, near, count, max_tries, seed):
+    """Up to ``count`` flat indices ``row * n^3 + cell`` drawn uniformly (with replacement) among
+    the cells of ``votes`` (rows, n^3) with at least ``min_votes`` votes whose centre's prior
+    (trilinear in ``corner`` (rows, 8), order of :data:`h3edge.mapping.trilinear.CORNERS`) reads
+    below ``near``: random (row, cell) pairs, rejected until ``count`` pass or ``max_tries`` were
+    drawn. ``seed`` seeds numba's generator (reproducible draws)."""
+    np.random.seed(seed)
+    rows, cells = votes.shape
+    out = np.empty(count, np.int64)
+    k = 0
+    for _ in range(max_tries):
+        if k == count:
+            break
+        i = np.random.randint(0, rows)
+        cell = np.random.randint(0, cells)
+        if votes[i, cell] < min_votes:
+            continue
+        a, rest = divmod(cell, n * n)
+        b, c = divmod(rest, n)
+        fx, fy, fz = (a + 0.5) / n, (b + 0.5) / n, (c + 0.5) / n
+        p = corner[i]
+        x00 = p[0] + fx * (p[1] - p[0])
+        x10 = p[2] + fx * (p[3] - p[2])
+        x01 = p[4] + fx * (p[5] - p[4])
+        x11 = p[6] + fx * (p[7] - p[6])
+        y0 = x00 + fy * (x10 - x00)
+        y1 = x01 + fy * (x11 - x01)
+        if y0 + fz * (y1 - y0) < near:
+            out[k] = i * cells + cell
+            k += 1
+    return out[:k]

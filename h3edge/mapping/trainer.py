@@ -19,8 +19,8 @@ another view of the batch measured a depth more than ``carve_margin`` beyond the
 (:mod:`h3edge.mapping.visibility`): behind a thin object those targets would fill free space.
 With fine free-space votes (:mod:`h3edge.mapping.cell_votes`, ``votes.cell`` > 0), they also take
 none in cells the majority of all mapped frames saw through, and ``votes.points`` points drawn in
-such cells take the sign term relu(-s)^2 (weight ``weights.seen_free``): space most views saw
-through must not read inside.
+such cells near a surface the priors put there take the sign term relu(-s)^2 (weight
+``weights.seen_free``): space most views saw through must not read inside.
 
 Surface colour points (``surface_color_points``, a departure from the paper, which trains colour
 only through volume rendering): more pixels of the same frames, back-projected with their
