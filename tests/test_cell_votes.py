@@ -104,15 +104,14 @@ def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():
     with torch.no_grad():
         prior, _ = vm.coarse_sdf(torch.from_numpy(pts))
     assert (prior.numpy() < 1.0).all()
-    c = np.floor(frac * cv.n).astype(int)
-    cells = vox * cv.n ** 3 + (c[:, 0] * cv.n + c[:, 1]) * cv.n + c[:, 2]
-    assert np.isin(cells, cv.free_cells(vm, np.arange(len(vm)))).all()  # the cells free_cells lists
     assert len(cv.sample_free(0, vm, gen)[0]) == 0
     again = cv.sample_free(500, vm, torch.Generator().manual_seed(0))
     assert np.array_equal(again[0], pts)  # reproducible from the generator
 
 
-def test_free_cells_are_the_voted_cells_whose_centre_prior_reads_near_a_surface():
+def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_surface_and_no_other():
+    from h3edge.mapping import _vote_kernel as k
+
     vm = wall_map()
     cv = CellVotes(VoteConfig(cell=0.02, min_votes=2), voxel_size=0.1, behind=0.05)
     cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
@@ -126,10 +125,13 @@ def test_free_cells_are_the_voted_cells_whose_centre_prior_reads_near_a_surface(
         prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3), (vox, np.tile(frac, (len(vm), 1))))
     want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
     assert 0 < len(want) < cv.votes.size
-    assert np.array_equal(cv.free_cells(vm, np.arange(len(vm)), near_prior=0.5), want)
-    some = np.array([len(vm) - 1, 2, 0, -1, len(vm)])  # any order; ids outside the map are skipped
-    got = cv.free_cells(vm, some, near_prior=0.5)
-    assert np.array_equal(np.sort(got), want[np.isin(want // cv.n ** 3, some)])
+    corner = vm.priors.numpy()[vm.voxel_vertices]
+    drawn = k.draw_free_cells(cv.votes, corner, cv.n, 2, np.float32(0.5), 30 * len(want), 10 ** 8, 1)
+    assert len(drawn) == 30 * len(want)
+    assert np.array_equal(np.unique(drawn), want)  # each of them (30 draws each on average), no other
+    counts = np.bincount(np.searchsorted(want, drawn), minlength=len(want))
+    assert counts.min() > 5 and counts.max() < 70  # uniform: Poisson(30) stays inside by far
+    assert len(k.draw_free_cells(cv.votes, corner, cv.n, 2, np.float32(-5.0), 10, 1000, 1)) == 0  # none pass
 
 
 def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():

@@ -1,6 +1,7 @@
-"""Fused numba CPU kernel of the fine free-space votes (see :mod:`h3edge.mapping.cell_votes`):
+"""Fused numba CPU kernels of the fine free-space votes (see :mod:`h3edge.mapping.cell_votes`):
 every cell of the given voxels projected into one depth image, its vote moved by what the pixel
-it falls on measured.
+it falls on measured (``vote_cells``); random cells seen free near a prior surface drawn for the
+trainer (``draw_free_cells``).
 
 Module-level so numba's on-disk cache is reused across processes.
 """
@@ -78,50 +79,6 @@ def in_view(corners, rot, trans, fx, fy, cx, cy, w, h, size, out):
             u, v = fx * x / z + cx, fy * y / z + cy
             umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
         out[i] = front and (back or (umax >= 0 and umin < w and vmax >= 0 and vmin < h))
-
-
-@nb.njit(inline="always")
-def _free_in_row(votes, corner, i, n, min_votes, near, out, k):
-    """Cells of voxel row ``i`` with at least ``min_votes`` votes whose centre's trilinear prior
-    (corners ``corner[i]``, order of :data:`h3edge.mapping.trilinear.CORNERS`) reads below
-    ``near``: written as ``i * n^3 + cell`` to ``out[k:]`` when ``out`` is not empty; returns k
-    plus their count."""
-    p = corner[i]
-    base = i * n * n * n
-    for a in range(n):
-        fx = (a + 0.5) / n
-        x00 = p[0] + fx * (p[1] - p[0])
-        x10 = p[2] + fx * (p[3] - p[2])
-        x01 = p[4] + fx * (p[5] - p[4])
-        x11 = p[6] + fx * (p[7] - p[6])
-        for b in range(n):
-            fy = (b + 0.5) / n
-            y0 = x00 + fy * (x10 - x00)
-            y1 = x01 + fy * (x11 - x01)
-            row = (a * n + b) * n
-            for c in range(n):
-                if votes[i, row + c] >= min_votes and y0 + (c + 0.5) / n * (y1 - y0) < near:
-                    if len(out):
-                        out[k] = base + row + c
-                    k += 1
-    return k
-
-
-@nb.njit(parallel=True, cache=True)
-def free_cells(votes, corner, n, min_votes, near):
-    """Flat indices ``row * n^3 + cell``, ascending, of the cells of ``votes`` (rows, n^3) with at
-    least ``min_votes`` votes whose centre's prior (trilinear in ``corner`` (rows, 8)) reads below
-    ``near``; two parallel passes over the rows (count, then fill)."""
-    rows = votes.shape[0]
-    none = np.empty(0, np.int64)
-    counts = np.zeros(rows + 1, np.int64)
-    for i in nb.prange(rows):
-        counts[i + 1] = _free_in_row(votes, corner, i, n, min_votes, near, none, 0)
-    starts = np.cumsum(counts)
-    out = np.empty(starts[-1], np.int64)
-    for i in nb.prange(rows):
-        _free_in_row(votes, corner, i, n, min_votes, near, out, starts[i])
-    return out
 
 
 @nb.njit(cache=True)

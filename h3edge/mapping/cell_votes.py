@@ -146,31 +146,15 @@ class CellVotes:
         out[ok] = self.votes[vox[ok], flat] >= self.cfg.min_votes
         return out
 
-    def free_cells(self, voxels: VoxelMap, ids: np.ndarray, near_prior: float = 1.0) -> np.ndarray:
-        """Flat indices (voxel id * cells + cell), ascending with ``ids``, of the cells of voxels
-        ``ids`` with at least ``min_votes`` net free votes whose centre's SDF prior reads less than
-        ``near_prior`` (truncation units: near a surface the priors put there, where a wrong inside
-        can be; open space reads +1). One pass over ``len(ids)`` x cells
-        (:func:`h3edge.mapping._vote_kernel.free_cells`): ~1 ms for 1,000 voxels of 1,000 cells."""
-        ids = np.asarray(ids, np.int64)
-        ids = ids[(ids >= 0) & (ids < min(len(self.votes), len(voxels)))]
-        if not self.enabled or len(ids) == 0:
-            return np.zeros(0, np.int64)
-        from h3edge.mapping import _vote_kernel as k
-
-        corner = voxels.priors.detach().cpu().numpy()[voxels.voxel_vertices[ids]]  # (ids, 8)
-        found = k.free_cells(self.votes[ids], np.ascontiguousarray(corner, np.float32), self.n,
-                             self.cfg.min_votes, np.float32(near_prior))
-        row, cell = np.divmod(found, self.n ** 3)
-        return ids[row] * self.n ** 3 + cell
-
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
                     near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Up to ``n`` world points (P, 3), uniform over the map's cells that :meth:`free_cells`
-        would list (drawn with replacement by rejection from random cells, at most ``64 n`` tries,
-        :func:`h3edge.mapping._vote_kernel.draw_free_cells`: O(n), not O(map)), each uniform inside
-        its cell; with their voxel ids (P,) and positions in the voxel (P, 3), as
-        :meth:`VoxelMap.locate` returns them."""
+        """Up to ``n`` world points (P, 3), each uniform inside a cell drawn uniformly (with
+        replacement) among the map's cells with at least ``min_votes`` net free votes whose centre's
+        SDF prior reads less than ``near_prior`` (truncation units: near a surface the priors put
+        there, where a wrong inside can be; open space reads +1); with their voxel ids (P,) and
+        positions in the voxel (P, 3), as :meth:`VoxelMap.locate` returns them. Rejection from
+        random cells, at most ``64 n`` tries, in one numba pass
+        (:func:`h3edge.mapping._vote_kernel.draw_free_cells`): O(n), not O(map)."""
         rows = min(len(self.votes), len(voxels))
         if not self.enabled or n <= 0 or rows == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3))
