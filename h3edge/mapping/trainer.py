@@ -198,9 +198,9 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
         free_pts = free_pts if len(free_pts[0]) else None
     if free_pts is not None:  # one field evaluation for the ray samples and the seen-free points
         p, pv, pf = free_pts
-        located = (np.concatenate([vox, pv]), np.concatenate([frac, pf]))
+        both_located = (np.concatenate([vox, pv]), np.concatenate([frac, pf]))
         both, both_in = neural_field.sdf(torch.cat([flat, torch.from_numpy(p.astype(np.float32)).to(flat.device)]),
-                                         voxels, located)
+                                         voxels, both_located)
         sdf, inside, free_sdf, free_in = both[:r * s], both_in[:r * s], both[r * s:], both_in[r * s:]
     else:
         sdf, inside = neural_field.sdf(flat, voxels, (vox, frac))
