@@ -125,13 +125,13 @@ def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_
         prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3), (vox, np.tile(frac, (len(vm), 1))))
     want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
     assert 0 < len(want) < cv.votes.size
-    corner = vm.priors.numpy()[vm.voxel_vertices]
-    drawn = k.draw_free_cells(cv.votes, corner, cv.n, 2, np.float32(0.5), 30 * len(want), 10 ** 8, 1)
+    priors = vm.priors.numpy()
+    drawn = k.draw_free_cells(cv.votes, vm.voxel_vertices, priors, cv.n, 2, np.float32(0.5), 30 * len(want), 10 ** 8, 1)
     assert len(drawn) == 30 * len(want)
     assert np.array_equal(np.unique(drawn), want)  # each of them (30 draws each on average), no other
     counts = np.bincount(np.searchsorted(want, drawn), minlength=len(want))
     assert counts.min() > 5 and counts.max() < 70  # uniform: Poisson(30) stays inside by far
-    assert len(k.draw_free_cells(cv.votes, corner, cv.n, 2, np.float32(-5.0), 10, 1000, 1)) == 0  # none pass
+    assert len(k.draw_free_cells(cv.votes, vm.voxel_vertices, priors, cv.n, 2, np.float32(-5.0), 10, 1000, 1)) == 0
 
 
 def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():

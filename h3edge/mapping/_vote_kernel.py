@@ -11,6 +11,8 @@ import math
 import numba as nb
 import numpy as np
 
+from h3edge.mapping._trilinear_kernel import corner_weight
+
 
 @nb.njit(parallel=True, cache=True)
 def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, margin, behind):
@@ -82,12 +84,13 @@ def in_view(corners, rot, trans, fx, fy, cx, cy, w, h, size, out):
 
 
 @nb.njit(cache=True)
-def draw_free_cells(votes, corner, n, min_votes, near, count, max_tries, seed):
+def draw_free_cells(votes, vertices, priors, n, min_votes, near, count, max_tries, seed):
     """Up to ``count`` flat indices ``row * n^3 + cell`` drawn uniformly (with replacement) among
     the cells of ``votes`` (rows, n^3) with at least ``min_votes`` votes whose centre's prior
-    (trilinear in ``corner`` (rows, 8), order of :data:`h3edge.mapping.trilinear.CORNERS`) reads
-    below ``near``: random (row, cell) pairs, rejected until ``count`` pass or ``max_tries`` were
-    drawn. ``seed`` seeds numba's generator (reproducible draws)."""
+    (trilinear in ``priors[vertices[row]]``, the voxel's 8 vertex priors in the order of
+    :data:`h3edge.mapping.trilinear.CORNERS`) reads below ``near``: random (row, cell) pairs,
+    rejected until ``count`` pass or ``max_tries`` were drawn; priors are read only for the pairs
+    whose vote passes. ``seed`` seeds numba's generator (reproducible draws)."""
     np.random.seed(seed)
     rows, cells = votes.shape
     out = np.empty(count, np.int64)
@@ -102,14 +105,10 @@ def draw_free_cells(votes, corner, n, min_votes, near, count, max_tries, seed):
         a, rest = divmod(cell, n * n)
         b, c = divmod(rest, n)
         fx, fy, fz = (a + 0.5) / n, (b + 0.5) / n, (c + 0.5) / n
-        p = corner[i]
-        x00 = p[0] + fx * (p[1] - p[0])
-        x10 = p[2] + fx * (p[3] - p[2])
-        x01 = p[4] + fx * (p[5] - p[4])
-        x11 = p[6] + fx * (p[7] - p[6])
-        y0 = x00 + fy * (x10 - x00)
-        y1 = x01 + fy * (x11 - x01)
-        if y0 + fz * (y1 - y0) < near:
+        prior = 0.0
+        for corner in range(8):
+            prior += priors[vertices[i, corner]] * corner_weight(fx, fy, fz, corner)
+        if prior < near:
             out[k] = i * cells + cell
             k += 1
     return out[:k]

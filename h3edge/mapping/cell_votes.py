@@ -162,8 +162,8 @@ class CellVotes:
 
         dev = generator.device if generator is not None else "cpu"
         seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator, device=dev))
-        corner = voxels.priors.detach().cpu().numpy()[voxels.voxel_vertices[:rows]]  # (rows, 8)
-        pick = k.draw_free_cells(self.votes[:rows], np.ascontiguousarray(corner, np.float32), self.n,
+        priors = np.ascontiguousarray(voxels.priors.detach().cpu().numpy(), np.float32)
+        pick = k.draw_free_cells(self.votes[:rows], voxels.voxel_vertices, priors, self.n,
                                  self.cfg.min_votes, np.float32(near_prior), n, 64 * n, seed)
         jitter = torch.rand((len(pick), 3), generator=generator, device=dev, dtype=torch.float64).cpu().numpy()
         vox, cell = np.divmod(pick, self.n ** 3)
