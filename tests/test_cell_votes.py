@@ -7,7 +7,7 @@ import torch
 
 from h3edge.geometry.camera import Intrinsics, look_at
 from h3edge.mapping.cell_votes import CellVotes, VoteConfig
-from h3edge.mapping.voxels import VoxelConfig, VoxelMap
+from h3edge.mapping.voxels import VoxelConfig, VoxelMap, unpack
 
 INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 FRONT = look_at(np.zeros(3), np.array([0.0, 1.0, 0.0]))  # looking along +y at a wall 2 m away
@@ -157,3 +157,46 @@ def test_storage_grows_by_doubling_keeps_the_votes_and_stops_at_the_voxel_cap():
     cv._grow(7)
     assert len(cv._store) == 10 and cv.rows == 7  # doubling capped at max_voxels
     assert (cv.votes[:3] == 5).all()
+
+
+def test_seen_free_points_that_read_outside_are_left_out_with_the_same_loss_and_gradient():
+    """The trainer evaluates the seen-free points once without autograd and keeps those reading
+    inside: the hinge is flat at s >= 0, so the loss and every gradient (MLP, priors, hash rows) are
+    those of all the points, at a fraction of the backward pass."""
+    from h3edge.mapping.field import Field, FieldConfig
+    from h3edge.mapping.trainer import reading_inside, seen_free_loss
+
+    vm = wall_map()
+    rng = np.random.default_rng(0)
+    with torch.no_grad():
+        vm.priors.copy_(torch.from_numpy(rng.uniform(-1.0, 1.0, len(vm.priors)).astype(np.float32)))
+    vm.priors.requires_grad_(True)
+    bound = np.array([[-1.0, 0.0, -1.0], [1.0, 3.0, 1.0]])
+    fld = Field(FieldConfig(geo_log2_table=10, tex_log2_table=10, sdf_layers=2), bound, 0.1)
+    vox = rng.integers(0, len(vm), 2000)
+    frac = rng.uniform(0, 1, (2000, 3))
+    pts = (unpack(vm.voxel_keys[vox]) + frac) * 0.1
+    tr = vm.cfg.truncation
+
+    def grads(loss):
+        for p in list(fld.sdf_mlp.parameters()) + [vm.priors]:
+            p.grad = None
+        loss.backward()
+        rows, g = fld.geo_grid.take_sparse_grad()
+        order = torch.argsort(rows)
+        return ([p.grad.clone() for p in fld.sdf_mlp.parameters()] + [vm.priors.grad.clone()], rows[order], g[order])
+
+    sdf, inside = fld.sdf(torch.from_numpy(pts.astype(np.float32)), vm, (vox, frac))
+    full = seen_free_loss(sdf, inside, tr)
+    g_full = grads(full)
+    (kp, kv, kf), count = reading_inside(fld, vm, (pts, vox, frac), torch.device("cpu"))
+    assert count == 2000 and 0 < len(kp) < 0.9 * count
+    sdf_k, inside_k = fld.sdf(torch.from_numpy(kp.astype(np.float32)), vm, (kv, kf))
+    assert (sdf_k < 0).all()
+    kept = seen_free_loss(sdf_k, inside_k, tr, count)
+    g_kept = grads(kept)
+    assert torch.allclose(full, kept, rtol=1e-5, atol=0)
+    for a, b in zip(g_full[0], g_kept[0]):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-9)
+    hit = g_full[2].abs().sum(1) > 0  # hash rows only the left-out points touched carry zero gradient
+    assert torch.equal(g_full[1][hit], g_kept[1]) and torch.allclose(g_full[2][hit], g_kept[2], rtol=1e-4, atol=1e-9)

@@ -20,7 +20,10 @@ another view of the batch measured a depth more than ``carve_margin`` beyond the
 With fine free-space votes (:mod:`h3edge.mapping.cell_votes`, ``votes.cell`` > 0), they also take
 none in cells the majority of all mapped frames saw through, and ``votes.points`` points drawn in
 such cells near a surface the priors put there take the sign term relu(-s)^2 (weight
-``weights.seen_free``): space most views saw through must not read inside.
+``weights.seen_free``): space most views saw through must not read inside. The term is flat
+wherever s >= 0, and few drawn points read inside (0.9 % on the real set), so a forward pass
+without autograd picks those first (:func:`reading_inside`), and only they join the step's
+forward and backward passes: the same loss and gradient for a fraction of the cost.
 
 Surface colour points (``surface_color_points``, a departure from the paper, which trains colour
 only through volume rendering): more pixels of the same frames, back-projected with their
@@ -168,13 +171,32 @@ def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, trun
     return ((truncation * sdf[inside]) ** 2).mean()
 
 
-def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float) -> torch.Tensor | None:
+def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float, count: int | None = None
+                   ) -> torch.Tensor | None:
     """Mean squared negative part of the SDF ``sdf`` (truncation units; in metres, as L_sdf) at
     points drawn in cells the frames voted free (:meth:`CellVotes.sample_free`), over those in a
-    voxel (``inside``): space most views saw through must not read inside. None when there are none."""
-    if not inside.any():
+    voxel (``inside``): space most views saw through must not read inside. ``count``: how many
+    points the mean is over, when the points that read outside (zero loss, zero gradient) were left
+    out of ``sdf`` (:func:`reading_inside`); default: those ``inside``. None when there are none."""
+    n = int(inside.sum()) if count is None else count
+    if n == 0 or not inside.any():
         return None
-    return ((truncation * torch.relu(-sdf[inside])) ** 2).mean()
+    return ((truncation * torch.relu(-sdf[inside])) ** 2).sum() / n
+
+
+def reading_inside(neural_field: Field, voxels: VoxelMap, points: tuple[np.ndarray, np.ndarray, np.ndarray],
+                   device: torch.device) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], int]:
+    """The seen-free points (world, voxel ids, positions in the voxel) whose SDF reads inside (< 0),
+    from a forward pass without autograd, and how many of all of them lie in a voxel. The others
+    add nothing to :func:`seen_free_loss` (its hinge is flat at s >= 0), so leaving them out of the
+    training step's forward and backward passes gives the same gradient at a fraction of the cost."""
+    p, vox, frac = points
+    if len(p) == 0:
+        return points, 0
+    with torch.no_grad():
+        sdf, inside = neural_field.sdf(torch.from_numpy(p.astype(np.float32)).to(device), voxels, (vox, frac))
+    keep = (inside & (sdf < 0)).cpu().numpy()
+    return (p[keep], vox[keep], frac[keep]), int(inside.sum())
 
 
 def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
@@ -194,7 +216,8 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     vox, frac = voxels.locate(flat.detach().cpu().numpy())
     free_pts = None  # points in cells voted free, (world, voxel ids, positions in the voxel)
     if votes is not None and votes.cfg.points > 0 and cfg.weights.seen_free > 0:
-        free_pts = votes.sample_free(votes.cfg.points, voxels, generator)
+        free_pts, free_count = reading_inside(neural_field, voxels,
+                                              votes.sample_free(votes.cfg.points, voxels, generator), flat.device)
         free_pts = free_pts if len(free_pts[0]) else None
     if free_pts is not None:  # one field evaluation for the ray samples and the seen-free points
         p, pv, pf = free_pts
@@ -244,7 +267,7 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr, located) if w.surface_sdf > 0 else None
     if l_surf_sdf is not None:
         loss = loss + w.surface_sdf * l_surf_sdf
-    l_free_cells = seen_free_loss(free_sdf, free_in, tr) if free_pts is not None else None
+    l_free_cells = seen_free_loss(free_sdf, free_in, tr, free_count) if free_pts is not None else None
     if l_free_cells is not None:
         loss = loss + w.seen_free * l_free_cells
     optimizer.zero_grad(set_to_none=True)
