@@ -409,11 +409,31 @@ def test_mesh_leaves_out_unobserved_cubes(block):
 
 @pytest.mark.xfail(strict=True, reason="open (issue 15): the band's negative SDF targets behind the slats fill the "
                    "3 cm gaps at this test's 32 training steps (sdf_behind = 0 opens them, and costs the real set "
-                   "its pixels behind; docs/silhouettes.md)")
+                   "its pixels behind; the cell votes open them at 384 steps: "
+                   "test_slat_gaps_open_with_cell_votes_given_the_steps; docs/silhouettes.md)")
 def test_slat_gaps_are_seen_through(scene, fixed):
     """Pixels between the slats render at the wall, not at the slats (no fused blob), at least as
     many as TSDF fusion at 1 cm on the same 16 frames opens (measured 0.47-0.51 in views 5, 7, 9)."""
     assert gap_pixels_at_wall(fixed, scene[1][7]) > 0.45
+
+
+def test_slat_gaps_open_with_cell_votes_given_the_steps(scene):
+    """The fix for the filled gaps that keeps the real set's targets behind: fine free-space votes
+    (``votes.*``, x86-cpu's) take the band's negative targets away only in cells most frames saw
+    through. At the same budget, 24 iterations a frame (384 steps), the gaps open with them and stay
+    filled without (measured over views 5 / 7 / 9: 0.42-0.48 against 0.06; TSDF 0.47-0.51), and the
+    slats stay (0.98-0.99 of their pixels within 5 cm). At the strict test's 32 steps they do not
+    yet (0.01)."""
+    from h3edge.mapping.cell_votes import VoteConfig
+
+    steps = dataclasses.replace(SETTINGS, mapper=dataclasses.replace(SETTINGS.mapper, iterations=24))
+    votes = mapped(scene[0], dataclasses.replace(steps, votes=VoteConfig(cell=0.01, min_votes=2, points=4096),
+                                                 train=dataclasses.replace(SETTINGS.train, carve_behind=False)))
+    without = mapped(scene[0], steps)
+    opened, filled = gap_pixels_at_wall(votes, scene[1][7]), gap_pixels_at_wall(without, scene[1][7])
+    assert opened > 0.3, opened
+    assert filled < 0.15, filled
+    assert slat_pixels_at_slats(votes, scene[1][7]) > 0.95
 
 
 def test_slat_gaps_open_without_sdf_targets_behind_the_depth(scene, fixed):
@@ -439,6 +459,19 @@ def gap_pixels_at_wall(m: Mapper, f: Frame) -> float:
     z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]  # height where the ray crosses y = 1.19
     gap = (z > 0.6) & (z < 1.2)
     return float(np.mean(np.abs(depth[rows[gap], cols[gap]] - f.depth[rows[gap], cols[gap]]) < 0.05))
+
+
+def slat_pixels_at_slats(m: Mapper, f: Frame) -> float:
+    """Share of the held-out view's slat pixels (measured nearer than 1.5 m, their ray crossing the
+    slats' front plane between the slats' bottom and top) that render within 5 cm of it."""
+    _, depth = m.render(f.intrinsics, f.pose)
+    k = f.intrinsics
+    near = (f.depth > 0) & (f.depth < 1.5)
+    rows, cols = np.nonzero(near & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None])
+    rays = np.stack([(cols + 0.5 - k.cx) / k.fx, (rows + 0.5 - k.cy) / k.fy, np.ones(len(cols))], 1) @ f.pose[:3, :3].T
+    z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]
+    slat = (z > 0.6) & (z < 1.2)
+    return float(np.mean(np.abs(depth[rows[slat], cols[slat]] - f.depth[rows[slat], cols[slat]]) < 0.05))
 
 
 def test_defaults_are_the_fixed_ones():
