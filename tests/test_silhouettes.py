@@ -452,26 +452,26 @@ def gap_pixels_at_wall(m: Mapper, f: Frame) -> float:
     """Share of the held-out view's pixels that see the wall between two slats (their ray crosses
     the slats' front plane between the slats' bottom and top) and render within 5 cm of it. The
     wall below and above the slats is left out: it is no gap (every map renders it)."""
-    _, depth = m.render(f.intrinsics, f.pose)
-    k = f.intrinsics
-    rows, cols = np.nonzero((f.depth > 1.9) & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None])
-    rays = np.stack([(cols + 0.5 - k.cx) / k.fx, (rows + 0.5 - k.cy) / k.fy, np.ones(len(cols))], 1) @ f.pose[:3, :3].T
-    z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]  # height where the ray crosses y = 1.19
-    gap = (z > 0.6) & (z < 1.2)
-    return float(np.mean(np.abs(depth[rows[gap], cols[gap]] - f.depth[rows[gap], cols[gap]]) < 0.05))
+    return slat_band_rendered_within_5cm(m, f, f.depth > 1.9)
 
 
 def slat_pixels_at_slats(m: Mapper, f: Frame) -> float:
     """Share of the held-out view's slat pixels (measured nearer than 1.5 m, their ray crossing the
     slats' front plane between the slats' bottom and top) that render within 5 cm of it."""
+    return slat_band_rendered_within_5cm(m, f, (f.depth > 0) & (f.depth < 1.5))
+
+
+def slat_band_rendered_within_5cm(m: Mapper, f: Frame, measured: np.ndarray) -> float:
+    """Share of the pixels of ``measured`` (a mask on ``f``'s depth) in the view's middle 120
+    columns whose ray crosses the slats' front plane (y = 1.19) between the slats' bottom and top,
+    that the map renders within 5 cm of the measured depth."""
     _, depth = m.render(f.intrinsics, f.pose)
     k = f.intrinsics
-    near = (f.depth > 0) & (f.depth < 1.5)
-    rows, cols = np.nonzero(near & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None])
+    rows, cols = np.nonzero(measured & (np.abs(np.arange(f.depth.shape[1]) - f.depth.shape[1] / 2) < 60)[None])
     rays = np.stack([(cols + 0.5 - k.cx) / k.fx, (rows + 0.5 - k.cy) / k.fy, np.ones(len(cols))], 1) @ f.pose[:3, :3].T
-    z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]
-    slat = (z > 0.6) & (z < 1.2)
-    return float(np.mean(np.abs(depth[rows[slat], cols[slat]] - f.depth[rows[slat], cols[slat]]) < 0.05))
+    z = f.pose[2, 3] + (1.19 - f.pose[1, 3]) / rays[:, 1] * rays[:, 2]  # height where the ray crosses y = 1.19
+    band = (z > 0.6) & (z < 1.2)
+    return float(np.mean(np.abs(depth[rows[band], cols[band]] - f.depth[rows[band], cols[band]]) < 0.05))
 
 
 def test_defaults_are_the_fixed_ones():
