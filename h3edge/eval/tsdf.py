@@ -18,29 +18,54 @@ from h3edge.geometry.raycast import import_open3d
 from h3edge.io.sequence import Sequence
 
 
+class TsdfFusion:
+    """Incremental TSDF fusion (Open3D ``VoxelBlockGrid``, CPU) at ``voxel`` metres with a truncation
+    of ``trunc_voxels`` voxels and colour: :meth:`integrate` one frame at a time, :meth:`mesh` at
+    any moment (the live peer of the anytime benchmark)."""
+
+    def __init__(self, intrinsics, voxel: float = 0.01, trunc_voxels: float = 4.0, depth_max: float = 10.0,
+                 block_count: int = 100_000):
+        self._o3d = o3d = import_open3d()
+        o3c = o3d.core
+        self._dev = o3c.Device("CPU:0")
+        self.voxel, self.trunc_voxels, self.depth_max = voxel, trunc_voxels, depth_max
+        self._vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
+                                                  ((1), (1), (3)), voxel, 16, block_count, self._dev)
+        self._K = o3c.Tensor(intrinsics.K.astype(np.float64), o3c.float64)
+        self.frames = 0
+
+    def integrate(self, color: np.ndarray, depth: np.ndarray, c2w: np.ndarray) -> float:
+        """Fuse colour uint8 (H, W, 3), depth float32 (H, W) metres (0 = invalid) at camera-to-world
+        ``c2w`` (OpenCV optical); returns the seconds it took."""
+        o3d, o3c, dev = self._o3d, self._o3d.core, self._dev
+        t0 = time.perf_counter()
+        d = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth, np.float32))).to(dev)
+        c = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color.astype(np.float32) / 255))).to(dev)
+        ext = o3c.Tensor(np.linalg.inv(c2w), o3c.float64)
+        blocks = self._vbg.compute_unique_block_coordinates(d, self._K, ext, 1.0, self.depth_max, self.trunc_voxels)
+        self._vbg.integrate(blocks, d, c, self._K, self._K, ext, 1.0, self.depth_max, self.trunc_voxels)
+        self.frames += 1
+        return time.perf_counter() - t0
+
+    def mesh(self) -> trimesh.Trimesh:
+        """The fused surface as a vertex-coloured mesh (empty before the first frame)."""
+        if self.frames == 0:
+            return trimesh.Trimesh()
+        m = self._vbg.extract_triangle_mesh().to_legacy()
+        mesh = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=False)
+        rgb = np.clip(np.asarray(m.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
+        mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
+        return mesh
+
+
 def fuse_tsdf(seq: Sequence, voxel: float = 0.01, frames: int | None = None, trunc_voxels: float = 4.0,
               depth_max: float = 10.0) -> tuple[trimesh.Trimesh, list[float]]:
     """TSDF fusion of the first ``frames`` frames of ``seq`` at ``voxel`` metres with a truncation of
     ``trunc_voxels`` voxels; returns the vertex-coloured mesh and the per-frame integration seconds."""
-    o3d = import_open3d()
-    o3c = o3d.core
-    dev = o3c.Device("CPU:0")
-    vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
-                                        ((1), (1), (3)), voxel, 16, 100_000, dev)
-    K = o3c.Tensor(seq.intrinsics.K.astype(np.float64), o3c.float64)
-    times = []
+    fusion = TsdfFusion(seq.intrinsics, voxel, trunc_voxels, depth_max)
     n = len(seq) if frames is None else min(frames, len(seq))
+    times = []
     for i in range(n):
         f = seq[i]
-        t0 = time.perf_counter()
-        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.depth, np.float32))).to(dev)
-        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.color.astype(np.float32) / 255))).to(dev)
-        ext = o3c.Tensor(np.linalg.inv(f.pose), o3c.float64)
-        blocks = vbg.compute_unique_block_coordinates(depth, K, ext, 1.0, depth_max, trunc_voxels)
-        vbg.integrate(blocks, depth, color, K, K, ext, 1.0, depth_max, trunc_voxels)
-        times.append(time.perf_counter() - t0)
-    m = vbg.extract_triangle_mesh().to_legacy()
-    mesh = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=False)
-    rgb = np.clip(np.asarray(m.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
-    mesh.visual.vertex_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
-    return mesh, times
+        times.append(fusion.integrate(f.color, f.depth, f.pose))
+    return fusion.mesh(), times

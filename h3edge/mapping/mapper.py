@@ -19,8 +19,10 @@ that long.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -229,11 +231,25 @@ class Mapper:
         self.last_timestamp: float | None = None
         self.iterations = {"frame": 0, "between_frames": 0}  # optimisation steps, by when they ran
         self._rays_cache: dict[Intrinsics, np.ndarray] = {}
+        self._untrained: ImageFrame | None = None  # the newest integrated frame no step has used yet
+        self._lock = threading.RLock()  # the map: integration, training steps, snapshots
+        self._turns = threading.Condition()  # exclusive() callers waiting go before training steps
+        self._waiting = 0
         # called on the mapping thread after every training step: where a service hands out
         # consistent snapshots without waiting for the whole frame
         self.step_hook: Callable[[], None] | None = None
         if self.bound is not None:
             self._build_field()
+
+    def __getstate__(self) -> dict:  # copies (tests) take the map, not its locks
+        state = dict(self.__dict__)
+        for k in ("_lock", "_turns", "_waiting"):
+            state.pop(k)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock, self._turns, self._waiting = threading.RLock(), threading.Condition(), 0
 
     # ----------------------------------------------------------------- set-up
     def _build_field(self) -> None:
@@ -307,19 +323,37 @@ class Mapper:
         return FrameResult(frame.index, False, reason)
 
     # ------------------------------------------------------------------ frame
-    def process(self, frame: Frame, read_seconds: float = 0.0) -> FrameResult:
-        """Map one frame: check it, allocate voxels and their priors, determine texture patterns,
-        update the keyframe set, train. ``read_seconds``: the caller's reading / decoding time,
-        added to ``read``. A dropped frame changes nothing in the map."""
+    def integrate(self, frame: Frame, read_seconds: float = 0.0) -> FrameResult:
+        """Integrate one frame into the explicit parts of the map, without training: check it,
+        allocate voxels and their priors, mark free space and cell votes, determine texture
+        patterns (every ``update_interval`` frames), decide keyframe insertion. The frame becomes
+        the newest frame :meth:`train_between_frames` trains on until a step has used it.
+        ``frame``: colour uint8 (H, W, 3), depth float32 (H, W) in metres, pose camera-to-world
+        (OpenCV optical), host numpy arrays. ``read_seconds``: the caller's reading / decoding
+        time, added to ``read``. Timed as ``integration`` (the call's own work, ``read_seconds``
+        included); its wait for the map (a training step in progress on another thread) apart, as
+        ``integration_wait``. A dropped frame changes nothing in the map. Thread-safe
+        against :meth:`train_between_frames` and :meth:`exclusive` on other threads."""
         t_frame = time.perf_counter()
         code, reason = self.check_frame(frame)
         if code:
             return self._drop(frame, code, reason)
-        current, pts = self._prepare(frame)
+        current, pts = self._prepare(frame)  # the frame's own work: no map state, no lock
         if len(current.pix) < self.cfg.min_valid_fraction * current.depth.size:
             return self._drop(frame, "no_depth", f"too little valid depth ({len(current.pix)} of "
                                                  f"{current.depth.size} pixels)")
         self.timings.add("read", time.perf_counter() - t_frame + read_seconds)
+        t_wait = time.perf_counter()
+        with self.exclusive():
+            waited = time.perf_counter() - t_wait
+            self.timings.add("integration_wait", waited)
+            result = self._commit(frame, current, pts)
+        if result.mapped:
+            self.timings.add("integration", time.perf_counter() - t_frame - waited + read_seconds)
+        return result
+
+    def _commit(self, frame: Frame, current: ImageFrame, pts: np.ndarray) -> FrameResult:
+        """The map-changing part of :meth:`integrate` (under the map lock)."""
         with self.timings.time("priors"):
             set_before = self.voxels.prior_set.copy()
             new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
@@ -336,15 +370,51 @@ class Mapper:
         grad = self._determine_texture(current, pts)
         with self.timings.time("keyframes"):
             is_kf = self._update_keyframes(frame.index, current, pts, grad)
-            picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
-        losses: dict = {}
-        with self.timings.time("training"):
-            for kfs in picks:
-                losses = self._step(self._sample_rays([current] + [k.payload for k in kfs]), "frame")
+        self._untrained = current
         self.frames_mapped += 1
         self.last_timestamp = frame.timestamp
+        return FrameResult(frame.index, True, new_voxels=len(new), keyframe=is_kf)
+
+    def process(self, frame: Frame, read_seconds: float = 0.0) -> FrameResult:
+        """Map one frame the paper's way: :meth:`integrate` it, then run ``iterations`` training
+        steps on rays drawn from it and the keyframes selected for each step (timed as
+        ``training``; the whole as ``frame``). Arguments and drops as :meth:`integrate`."""
+        t_frame = time.perf_counter()
+        result = self.integrate(frame, read_seconds)
+        if not result.mapped:
+            return result
+        with self.exclusive():
+            current, self._untrained = self._untrained, None
+            with self.timings.time("training"):  # the keyframe picks included
+                picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
+                for kfs in picks:
+                    result.losses = self._step(self._sample_rays([current] + [k.payload for k in kfs]), "frame")
         self.timings.add("frame", time.perf_counter() - t_frame + read_seconds)
-        return FrameResult(frame.index, True, new_voxels=len(new), keyframe=is_kf, losses=losses)
+        return result
+
+    @contextlib.contextmanager
+    def exclusive(self):
+        """Hold the map against every other thread (integration, training steps, snapshots and
+        checkpoints take it); a caller here goes before a training step that waits for it, so a
+        step on another thread delays it by at most the step in progress. Re-entrant."""
+        with self._turns:
+            self._waiting += 1
+        self._lock.acquire()
+        with self._turns:
+            self._waiting -= 1
+            self._turns.notify_all()
+        try:
+            yield self
+        finally:
+            self._lock.release()
+
+    @contextlib.contextmanager
+    def _training_turn(self):
+        """The map lock for one training step, taken only when no :meth:`exclusive` caller waits."""
+        with self._turns:
+            self._turns.wait_for(lambda: self._waiting == 0)
+        with self._lock:
+            yield
 
     def _prepare(self, frame: Frame) -> tuple[ImageFrame, np.ndarray]:
         """The frame with cleaned depth and its valid pixels, and its world points (H, W, 3)."""
@@ -392,17 +462,24 @@ class Mapper:
         return True
 
     def train_between_frames(self) -> dict | None:
-        """One optimisation step on the keyframes the coverage rule selects, without a current
-        frame; its losses, or None when there is nothing to train on yet (or the profile turns
-        it off). Timed as ``idle_training``."""
-        if not self.cfg.train_between_frames or self.field is None or not self.keyframes.keyframes \
-                or len(self.voxels) == 0:
+        """One optimisation step on the keyframes the coverage rule selects and on the newest
+        integrated frame when no step has used it yet (:meth:`integrate`); its losses (floats), or
+        None when there is nothing to train on yet (or the profile turns it off). Timed as
+        ``idle_training``. Safe to call from a training thread of its own: the step holds the map
+        lock and gives way to :meth:`exclusive` callers between steps."""
+        if not self.cfg.train_between_frames:
             return None
-        with self.timings.time("idle_training"):
-            kfs = [k for k in self.keyframes.select() if k.payload is not None]
-            if not kfs:
+        with self._training_turn():
+            if self.field is None or not self.keyframes.keyframes or len(self.voxels) == 0:
                 return None
-            return self._step(self._sample_rays([k.payload for k in kfs]), "between_frames")
+            with self.timings.time("idle_training"):
+                frames = [k.payload for k in self.keyframes.select() if k.payload is not None]
+                if self._untrained is not None:
+                    frames.insert(0, self._untrained)
+                    self._untrained = None
+                if not frames:
+                    return None
+                return self._step(self._sample_rays(frames), "between_frames")
 
     def _step(self, rays: RayBatch, when: str) -> dict:
         losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.settings.render.near,

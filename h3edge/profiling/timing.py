@@ -30,6 +30,7 @@ LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
           "training": "map training", "idle_training": "training between frames", "mesh": "mesh extraction",
           "render": "render at pose",
           "frame": "whole frame", "ingest": "ingest (zenoh callback)", "queue_wait": "queue wait",
+          "integration": "frame integration (no training)", "integration_wait": "integration's wait for the map",
           "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write"}
 
 
@@ -43,8 +44,20 @@ class Timings:
     counts: dict[str, int] = field(default_factory=dict)
     totals: dict[str, float] = field(default_factory=dict)
     sink: Callable[[str, float], None] | None = None  # also called with every duration (a DurationLog)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:  # a copy takes the durations, not the lock
+        return {k: v for k, v in self.__dict__.items() if k != "_lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     def add(self, name: str, seconds: float) -> None:
+        with self._lock:  # integration and training add from their own threads
+            self._add(name, seconds)
+
+    def _add(self, name: str, seconds: float) -> None:
         if name not in self.samples:
             self.samples[name] = collections.deque(maxlen=self.window)
             self.counts[name], self.totals[name] = 0, 0.0

@@ -1,0 +1,356 @@
+"""Benchmark: map quality against wall-clock time, h3edge beside TSDF fusion, both fed at the
+camera's rate (the anytime benchmark).
+
+Each dataset's frames (preloaded, so disk reads time neither method) arrive at ``--hz`` (frame k at
+k / hz s) with the service's queue semantics: at most ``--queue`` frames wait and older ones are
+skipped (counted). Both methods are scored on the same held-out views (``--views`` of them,
+evenly spread) at fixed wall-clock checkpoints: every ``--every-s`` seconds while frames arrive,
+at the last frame, and ``--still-s`` seconds after the last frame arrived (the robot standing
+still). Scores: PSNR, SSIM, Depth L1, the share of valid pixels rendered more than 5 cm in front
+of / behind the sensor depth, and the TSDF surface farther than 5 cm from h3edge's mesh (holes),
+against the TSDF's mesh at the same checkpoint.
+
+h3edge modes (``--modes``):
+- ``live``: what the service runs: every frame that arrives is integrated on the replay thread
+  (:meth:`Mapper.integrate`) while training runs on a thread of its own
+  (:class:`~h3edge.mapping.background.BackgroundTraining`);
+- ``inline``: the service before that change: :meth:`Mapper.process` per frame (``iterations``
+  training steps inline), training on keyframes only when no frame waits.
+h3edge runs in real time; the clock stops while a checkpoint is scored (training held off).
+The TSDF peer (Open3D ``VoxelBlockGrid``, ``--tsdf-voxel``) is single-threaded, so its replay is
+computed from its measured per-frame integration times (the same queue rule), scored at the same
+checkpoints.
+
+Output: OUT.md (one table per dataset: a row per checkpoint and method) and OUT.json, a plot per
+dataset (OUT_<dataset>.png: PSNR, SSIM and pixels off against time, both methods) and the held-out
+renders at the last frame (OUT_<dataset>_views.jpg: sensor | h3edge | TSDF | h3edge depth error |
+TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
+
+    python -m h3edge.bench.anytime [--datasets sim studio real] [--hz 30] [--out docs/bench_anytime]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from h3edge.bench.mapping import REAL, open_dataset, write_comparison
+from h3edge.bench.tables import markdown_table
+from h3edge.config import apply_overrides, load_profile
+from h3edge.eval.evaluate import MeshRenderer, evaluate_views
+from h3edge.eval.metrics import mesh_to_mesh
+from h3edge.eval.tsdf import TsdfFusion
+from h3edge.mapping.background import BackgroundTraining
+from h3edge.mapping.mapper import Mapper
+
+log = logging.getLogger("h3edge.bench.anytime")
+MESH_POINTS = 50_000  # surface samples per mesh for the holes share
+
+
+class PausableClock:
+    """Seconds since creation, less the time spent inside :meth:`paused` blocks."""
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter()
+        self._paused = 0.0
+
+    def __call__(self) -> float:
+        return time.perf_counter() - self._t0 - self._paused
+
+    @contextlib.contextmanager
+    def paused(self):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._paused += time.perf_counter() - t
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    label: str  # "5 s", "last frame", "still 10 s"
+    t: float  # s of replay time; the last frame's is when its frame was handled
+
+
+def checkpoints(n_frames: int, hz: float, every_s: float, still_s: list[float]) -> list[Checkpoint]:
+    """The scoring times of a replay of ``n_frames`` at ``hz`` (the last frame's is a placeholder at
+    its arrival: each method scores it when it has handled its last frame)."""
+    last = (n_frames - 1) / hz
+    marks = [Checkpoint(f"{t:g} s", t) for t in np.arange(every_s, last, every_s)]
+    marks.append(Checkpoint("last frame", last))
+    marks += [Checkpoint(f"still {s:g} s", last + s) for s in still_s]
+    return marks
+
+
+def pick_views(held: list, n: int) -> list:
+    idx = np.linspace(0, len(held) - 1, min(n, len(held))).round().astype(int)
+    return [held[int(i)] for i in np.unique(idx)]
+
+
+def score(renderer, views: list, threshold: float, mesh=None, reference=None) -> dict:
+    """Held-out view scores of ``renderer``; with ``mesh`` and ``reference``, the share of the
+    reference surface farther than ``threshold`` from ``mesh`` (holes)."""
+    v = evaluate_views(renderer, views, 1, len(views), threshold)
+    out = {"psnr_db": v["psnr_db"], "ssim": v["ssim"], "depth_l1_cm": v["depth_l1_cm"],
+           "front_pct": 100 * v["front_share"], "behind_pct": 100 * v["behind_share"]}
+    if mesh is not None and reference is not None and len(reference.faces):
+        if len(mesh.faces) == 0:
+            out["holes_pct"] = 100.0
+        else:
+            out["holes_pct"] = 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["b_to_a_far_share"]
+    return out
+
+
+def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], views: list, threshold: float,
+                voxel: float) -> tuple[list[dict], dict, TsdfFusion]:
+    """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, the meshes
+    at each checkpoint label, and the fusion at the end."""
+    fusion = TsdfFusion(frames[0].intrinsics, voxel)
+    rows, meshes, pending = [], {}, list(marks)
+    free_at, k, skipped, times = 0.0, 0, 0, []
+
+    def score_until(t: float, last: bool = False) -> None:
+        """Score the checkpoints due by ``t``; the last frame's only when ``last`` (its time is
+        ``t``); standing still scores what the last frame left (nothing changes)."""
+        while pending and (pending[0].label == "last frame") == last and (last or pending[0].t <= t):
+            mark = pending.pop(0)
+            if mark.label.startswith("still"):
+                rows.append({**rows[-1], "checkpoint": mark.label, "t_s": mark.t})
+                meshes[mark.label] = meshes["last frame"]
+                continue
+            mesh = fusion.mesh()
+            meshes[mark.label] = mesh
+            scores = score(MeshRenderer(mesh), views, threshold) if len(mesh.faces) else {}
+            rows.append({"checkpoint": mark.label, "t_s": t if last else mark.t, "frames_integrated": fusion.frames,
+                         "skipped": skipped, **scores})
+            last = False
+
+    while k < len(frames):
+        start = max(free_at, k / hz)
+        arrived = min(len(frames), int(start * hz) + 1)
+        if arrived - k > queue:
+            skipped += arrived - queue - k
+            k = arrived - queue
+        score_until(start)
+        f = frames[k]
+        d = fusion.integrate(f.color, f.depth, f.pose)
+        times.append(d)
+        free_at = start + d
+        k += 1
+    score_until(free_at, last=True)
+    score_until(float("inf"))
+    summary = {"integration_ms_median": 1000 * float(np.median(times)), "frames_integrated": fusion.frames,
+               "skipped": skipped}
+    return rows, {"meshes": meshes, **summary}, fusion
+
+
+def warm_up(frames: list, settings) -> None:
+    """Compile and load every kernel on a throwaway map (as the service does before it maps), so
+    that neither the first frames nor the first checkpoint of a replay pay for it."""
+    m = Mapper(settings)
+    for f in frames[:3]:
+        m.process(f)
+    if m.field is not None:
+        m.render(frames[0].intrinsics, frames[0].pose)
+        m.mesh()
+
+
+def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Checkpoint], views: list,
+                  threshold: float, references: dict, mode: str) -> tuple[list[dict], dict, Mapper]:
+    """h3edge's replay in real time (``mode`` live or inline, as the module says); rows per
+    checkpoint, a summary, and the mapper at the end."""
+    warm_up(frames, settings)
+    mapper = Mapper(settings)
+    trainer = BackgroundTraining(mapper) if mode == "live" else None
+    clock = PausableClock()
+    rows, pending = [], list(marks)
+    skipped, dropped, n = 0, 0, len(frames)
+
+    def score_now(mark: Checkpoint) -> None:
+        with clock.paused(), mapper.exclusive():
+            t = clock()
+            if mapper.field is None:
+                rows.append({"checkpoint": mark.label, "t_s": t, "frames_integrated": 0, "skipped": skipped})
+                return
+            mesh = mapper.mesh()
+            rows.append({"checkpoint": mark.label, "t_s": t, "frames_integrated": mapper.frames_mapped,
+                         "skipped": skipped, "training_steps": sum(mapper.iterations.values()),
+                         **score(mapper, views, threshold, mesh, references.get(mark.label))})
+            log.info("%s %s at %.1f s: %s", mode, mark.label, t, {k: round(v, 3) for k, v in rows[-1].items()
+                                                                   if isinstance(v, float)})
+
+    def idle(until: float) -> None:
+        """Wait for the next event: inline trains (one step), live lets its thread train."""
+        if trainer is None and mapper.train_between_frames() is not None:
+            return
+        time.sleep(max(0.0, min(0.01, until - clock())))
+
+    if trainer is not None:
+        trainer.start()
+    try:
+        nxt = 0
+        while nxt < n:
+            now = clock()
+            if pending and pending[0].label != "last frame" and pending[0].t <= now:
+                score_now(pending.pop(0))
+                continue
+            arrived = min(n, int(now * hz) + 1)
+            if arrived > nxt:
+                if arrived - nxt > queue:
+                    skipped += arrived - queue - nxt
+                    nxt = arrived - queue
+                f = frames[nxt]
+                r = mapper.integrate(f) if trainer is not None else mapper.process(f)
+                dropped += not r.mapped
+                nxt += 1
+            else:
+                idle(min(nxt / hz, pending[0].t if pending else np.inf))
+        while pending[0].label != "last frame":
+            score_now(pending.pop(0))
+        score_now(pending.pop(0))  # the last frame
+        t_last = (n - 1) / hz
+        while pending:
+            if clock() >= pending[0].t:
+                score_now(pending.pop(0))
+            else:
+                idle(pending[0].t)
+    finally:
+        if trainer is not None:
+            trainer.stop()
+    tm = mapper.timings.summary()
+    key = "integration" if mode == "live" else "frame"
+    summary = {"mode": mode, "frames_integrated": mapper.frames_mapped, "skipped": skipped, "dropped": dropped,
+               "integration_ms_median": tm.get(key, {}).get("median_ms"),
+               "integration_ms_p95": tm.get(key, {}).get("p95_ms"),
+               "integration_wait_ms_median": tm.get("integration_wait", {}).get("median_ms"),
+               "training_steps": dict(mapper.iterations), "components": tm, "last_arrival_s": t_last}
+    return rows, summary, mapper
+
+
+COLUMNS = [("checkpoint", lambda r: r["checkpoint"], None), ("method", lambda r: r["method"], None),
+           ("t [s]", lambda r: r.get("t_s"), 1), ("frames", lambda r: r.get("frames_integrated"), None),
+           ("skipped", lambda r: r.get("skipped"), None), ("steps", lambda r: r.get("training_steps"), None),
+           ("PSNR [dB]", lambda r: r.get("psnr_db"), 2), ("SSIM", lambda r: r.get("ssim"), 3),
+           ("Depth L1 [cm]", lambda r: r.get("depth_l1_cm"), 2),
+           ("off in front [%]", lambda r: r.get("front_pct"), 2), ("off behind [%]", lambda r: r.get("behind_pct"), 2),
+           ("holes [%]", lambda r: r.get("holes_pct"), 1)]
+
+
+def plot(result: dict, path: Path) -> None:
+    """PSNR, SSIM and pixels off (in front + behind) against replay time, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for method, rows in result["runs"].items():
+        rows = [r for r in rows if r.get("psnr_db") is not None]
+        t = [r["t_s"] for r in rows]
+        for ax, key in zip(axes, ("psnr_db", "ssim", "off_pct")):
+            ax.plot(t, [r["front_pct"] + r["behind_pct"] if key == "off_pct" else r[key] for r in rows],
+                    marker="o", label=method)
+    for ax, name in zip(axes, ("held-out PSNR [dB]", "held-out SSIM", "pixels > 5 cm off [%]")):
+        ax.set_xlabel("wall-clock time [s]")
+        ax.set_title(name)
+        ax.axvline(result["last_arrival_s"], color="grey", lw=0.8, ls="--")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{result['title']}: fed at {result['hz']:g} Hz (dashed: last frame arrives)", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def bench_dataset(name: str, seq, settings, args, title: str, threshold: float, out: Path) -> dict:
+    frames = [seq[i] for i in range(len(seq) if args.frames is None else min(args.frames, len(seq)))]
+    held = getattr(seq, "heldout", None)
+    held = [held[i] for i in range(len(held))] if held is not None and len(held) else frames[::10]
+    views = pick_views(held, args.views)
+    marks = checkpoints(len(frames), args.hz, args.every_s, args.still_s)
+    log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), args.hz, len(views),
+             [m.label for m in marks])
+    tsdf_rows, tsdf, fusion = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
+    tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
+    runs, mappers = {tsdf_label: tsdf_rows}, {}
+    summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
+    for mode in args.modes:
+        label = f"h3edge {mode}"
+        rows, summary, mapper = replay_h3edge(frames, settings, args.hz, args.queue, marks, views, threshold,
+                                              tsdf["meshes"], mode)
+        if not args.components:
+            del summary["components"]
+        runs[label], summaries[label], mappers[label] = rows, summary, mapper
+    result = {"dataset": name, "title": title, "hz": args.hz, "frames": len(frames), "views": len(views),
+              "last_arrival_s": (len(frames) - 1) / args.hz, "runs": runs, "summaries": summaries}
+    plot(result, out.parent / f"{out.name}_{name}.png")
+    if mappers:  # the held-out renders now (the map at the end of the replay, standing still included)
+        write_comparison(seq, list(mappers.values())[:1], MeshRenderer(fusion.mesh()),
+                         out.parent / f"{out.name}_{name}_views.jpg", threshold)
+    return result
+
+
+def format_result(r: dict) -> str:
+    rows = []
+    for mark in dict.fromkeys(row["checkpoint"] for rs in r["runs"].values() for row in rs):
+        for method, rs in r["runs"].items():
+            rows += [{**row, "method": method} for row in rs if row["checkpoint"] == mark]
+    lines = [markdown_table(f"{r['title']}, fed at {r['hz']:g} Hz ({r['frames']} frames, {r['views']} held-out views)",
+                            COLUMNS, rows), ""]
+    for method, s in r["summaries"].items():
+        lines.append(f"- {method}: {s['frames_integrated']} frames integrated, {s['skipped']} skipped, "
+                     f"integration median {s['integration_ms_median']:.1f} ms"
+                     + (f" (p95 {s['integration_ms_p95']:.1f} ms, waiting for a step: median "
+                        f"{s['integration_wait_ms_median'] or 0:.1f} ms); training steps {s['training_steps']}"
+                        if "training_steps" in s else ""))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "real"])
+    ap.add_argument("--profile", default="x86-cpu")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--modes", nargs="+", default=["live"], choices=["live", "inline"])
+    ap.add_argument("--hz", type=float, default=30.0, help="camera rate the frames arrive at")
+    ap.add_argument("--queue", type=int, default=2, help="frames that may wait; older ones are skipped")
+    ap.add_argument("--every-s", type=float, default=5.0)
+    ap.add_argument("--still-s", type=float, nargs="*", default=[10.0, 30.0])
+    ap.add_argument("--views", type=int, default=10, help="held-out views scored at each checkpoint")
+    ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
+    ap.add_argument("--tsdf-voxel", type=float, default=0.01)
+    ap.add_argument("--components", action="store_true", help="keep h3edge's timing components in the JSON")
+    ap.add_argument("--work", default="out/bench_mapping", help="where the simulated scenes are cached")
+    ap.add_argument("--out", default="docs/bench_anytime", help="writes OUT.md, OUT.json and the pictures")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    profile = load_profile(args.profile)
+    settings = apply_overrides(profile.map_settings(), args.set)
+    out = Path(args.out)
+    titles = {"sim": "default simulated scene", "studio": "studio simulated scene",
+              "real": "real Kinect v1, 7-Scenes redkitchen dev", "tiny": "tiny simulated scene (160x120)"}
+    results = []
+    for ds in args.datasets:
+        if ds == "real" and not REAL.is_dir():
+            log.warning("real skipped: %s not present", REAL)
+            continue
+        seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
+        r = bench_dataset(ds, seq, settings, args, titles.get(ds, ds), profile.eval.depth_error_threshold, out)
+        results.append(r)
+        print(format_result(r), flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=1, default=str) + "\n")
+    out.with_suffix(".md").write_text("\n\n".join(format_result(r) for r in results) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
