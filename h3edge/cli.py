@@ -473,9 +473,10 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
     mp.add_argument("--threads", type=int, help="torch CPU threads")
     mp.add_argument("--no-eval", action="store_true", help="skip evaluation")
-    mp.add_argument("--camera-hz", type=float, help="live replay: frames arrive at this rate, the mapper skips "
-                                                    "what it cannot keep up with and trains on keyframes between "
-                                                    "frames (default: every frame, fixed iterations)")
+    mp.add_argument("--camera-hz", type=float, help="live replay, as the service maps: frames arrive at this "
+                                                    "rate and are integrated as they come (what integration cannot "
+                                                    "keep up with is skipped) while training runs on its own thread "
+                                                    "(default: every frame, fixed iterations)")
     mp.add_argument("--settle-s", type=float, default=0.0,
                     help="after the last frame, keep training on keyframes this many seconds")
     _add_ros_args(mp)

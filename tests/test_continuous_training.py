@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from h3edge.apps.offline import map_sequence
+from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.eval.metrics import psnr
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.field import FieldConfig
@@ -19,20 +19,6 @@ from h3edge.mapping.voxels import VoxelConfig
 LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
                    voxels=VoxelConfig(min_points=3), field=FieldConfig(sdf_layers=2, geo_log2_table=14,
                                                                       tex_log2_table=14))
-
-
-class FakeClock:
-    """Wall time that advances only when asked: ``step`` per reading, plus explicit sleeps."""
-
-    def __init__(self, step: float):
-        self.t, self.step = 0.0, step
-
-    def __call__(self) -> float:
-        self.t += self.step
-        return self.t
-
-    def sleep(self, s: float) -> None:
-        self.t += max(s, 1e-3)
 
 
 def test_nothing_to_train_on_before_a_keyframe_or_when_turned_off(tiny_scene):
@@ -65,30 +51,46 @@ def test_training_between_frames_improves_the_map(tiny_scene):
 
 
 def test_live_replay_skips_what_it_cannot_keep_up_with(tiny_scene):
-    """A camera faster than the mapper: the ingest queue overflows, older frames are skipped, and the
-    mapper never trains between frames (a frame is always waiting)."""
+    """A camera faster than integration: the ingest queue overflows, older frames are skipped, every
+    frame is accounted for once and the newest one is never the one skipped."""
     seq = ReplicaSequence(tiny_scene)
     m = Mapper(LEAN)
-    clock = FakeClock(step=0.05)  # ~4 clock reads per frame: a frame takes ~0.2 s of "wall time"
-    results = map_sequence(seq, m, camera_hz=50.0, clock=clock, sleep=clock.sleep, progress_every=0)
+    results = map_sequence(seq, m, camera_hz=2000.0, progress_every=0)
     skipped = [r for r in results if r.reason == "queue_full"]
     mapped = [r for r in results if r.mapped]
     assert len(results) == len(seq) and skipped and mapped
-    assert sorted(r.frame_id for r in results) == list(range(len(seq)))  # every frame accounted for once
+    assert sorted(r.frame_id for r in results) == list(range(len(seq)))
     assert m.frames_mapped == len(mapped)
-    assert results[-1].mapped  # the newest frame is never the one skipped
+    assert results[-1].mapped
 
 
-def test_live_replay_trains_while_the_camera_is_slow_and_settles(tiny_scene):
+def test_live_replay_integrates_every_frame_trains_apart_and_settles(tiny_scene):
+    """A camera the integration keeps up with: nothing skipped, no training step inline (they run on
+    the training thread, ``between_frames``), training goes on after the last frame, and a mark is
+    called with the replay's time at its place, the last frame's after every frame."""
     seq = ReplicaSequence(tiny_scene)
     m = Mapper(LEAN)
-    clock = FakeClock(step=0.01)
-    results = map_sequence(seq, m, frames=6, camera_hz=2.0, settle_s=0.5, clock=clock, sleep=clock.sleep,
-                           progress_every=0)
-    assert [r.mapped for r in results] == [True] * 6  # a slow camera: nothing skipped
-    assert m.iterations["between_frames"] > 6  # trained between every pair of frames and after the last
+    seen = []
+    results = map_sequence(seq, m, frames=6, camera_hz=5.0, settle_s=0.6, progress_every=0,
+                           marks=[("last", LAST_FRAME), ("half", 0.5)],
+                           on_mark=lambda label, t, res: seen.append((label, t, len(res), m.frames_mapped)))
+    assert [r.mapped for r in results] == [True] * 6
+    assert m.iterations["frame"] == 0 and m.iterations["between_frames"] > 0
+    assert m.timings.summary()["integration"]["count"] == 6
+    (l1, t1, n1, f1), (l2, t2, n2, f2) = seen
+    assert l1 == "half" and 0.5 <= t1 < 1.0 and f1 == n1 < 6
+    assert l2 == "last" and t2 >= 1.0 and n2 == f2 == 6
     with pytest.raises(ValueError):
         map_sequence(seq, Mapper(LEAN), camera_hz=0.0)
+
+
+def test_inline_replay_trains_each_frame_and_between_frames(tiny_scene):
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(LEAN)
+    results = map_sequence(seq, m, frames=4, camera_hz=4.0, settle_s=0.5, progress_every=0, inline=True)
+    assert sorted(r.frame_id for r in results) == list(range(4)) and results[-1].mapped
+    mapped = sum(r.mapped for r in results)
+    assert m.iterations["frame"] == mapped * LEAN.mapper.iterations and m.iterations["between_frames"] > 0
 
 
 def test_replay_counts_survive_a_checkpoint(tiny_scene):

@@ -57,8 +57,8 @@ def test_maps_streamed_scene(served):
     assert status["map"]["voxels"] > 100 and status["map"]["keyframes"] >= 1
     assert status["memory"]["total_bytes"] > 0 and status["memory"]["budget_bytes"] == 512 << 20
     assert status["mapper_alive"]
-    tr = status["training"]  # the camera (4 Hz) is slower than the mapper: it trains between frames
-    assert tr["iterations"]["frame"] == 2 * f["mapped"] and tr["iterations"]["between_frames"] > 0, tr
+    tr = status["training"]  # every frame integrated; training on its own thread, none inline
+    assert tr["iterations"]["frame"] == 0 and tr["iterations"]["between_frames"] > 0, tr
     assert tr["iterations_per_s"] >= 0 and (tr["between_frames_share"] is None or 0 <= tr["between_frames_share"] <= 1)
     inf = status["inference"]  # what the mapper and the query decoders run on
     assert inf["mapping_device"] == "cpu" and inf["decoders"] in ("onnx", "torch")

@@ -178,7 +178,7 @@ def test_memory_plan_sets_keyframe_cap():
     assert big["max_keyframes"] > small["max_keyframes"] >= 8
     assert big["hash_tables"] == small["hash_tables"] > 0
     parts = ("hash_tables", "voxels_at_cap", "query_snapshot", "query_working_set", "checkpoint_capture",
-             "frame_buffers", "free_space", "cell_votes", "keyframes")
+             "frame_buffers", "free_space", "cell_votes", "color_base", "keyframes")
     assert sum(big[k] for k in parts) == big["budget"]
     # the largest admitted frame's buffers are planned for: a larger cap leaves fewer keyframes
     hd, uhd = memory_plan(s, 4096, kb, 1920 * 1080), memory_plan(s, 4096, kb, 4096 * 3072)

@@ -9,10 +9,12 @@ timing profile ``h3edge profile report`` reads) and DIR/timings.jsonl (every dur
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +22,7 @@ import numpy as np
 from h3edge.config import Profile
 from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence, write_color, write_depth
+from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.mapper import FrameResult, Mapper
 from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.profiling.timing import DurationLog, format_timings
@@ -27,57 +30,120 @@ from h3edge.profiling.timing import DurationLog, format_timings
 log = logging.getLogger(__name__)
 
 
+class PausableClock:
+    """Seconds since creation, less the time spent inside :meth:`paused` blocks."""
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter()
+        self._paused = 0.0
+
+    def __call__(self) -> float:
+        return time.perf_counter() - self._t0 - self._paused
+
+    @contextlib.contextmanager
+    def paused(self):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._paused += time.perf_counter() - t
+
+
+LAST_FRAME = -1.0  # a mark's time: when the last frame has been handled
+
+
 def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, stride: int = 1,
                  progress_every: int = 50, camera_hz: float | None = None, settle_s: float = 0.0,
-                 queue_depth: int = 2, clock=time.perf_counter, sleep=time.sleep) -> list:
+                 queue_depth: int = 2, inline: bool = False, marks: list[tuple[str, float]] = (),
+                 on_mark: Callable[[str, float, list], None] | None = None) -> list:
     """Feed every ``stride``-th frame (the first ``frames`` of them) to the mapper.
 
     ``camera_hz`` None: every frame, one after the other, as fast as the mapper goes (the paper's
-    fixed iterations per frame). ``camera_hz`` F: a live replay, as the service sees a camera:
-    frame k arrives at k / F s of wall time; at most ``queue_depth`` arrived frames wait (older ones
-    are skipped, a ``queue_full`` result, as the service's ingest queue drops them); whenever none
-    waits the mapper trains on its keyframes (:meth:`Mapper.train_between_frames`). ``settle_s``:
-    after the last frame, keep training that long (the robot standing still). Returns one
+    fixed iterations per frame, :meth:`Mapper.process`). ``camera_hz`` F: a live replay, as the
+    service sees a camera: frame k arrives at k / F s of wall time; at most ``queue_depth`` arrived
+    frames wait (older ones are skipped, a ``queue_full`` result, as the service's ingest queue drops
+    them); each frame taken is integrated (:meth:`Mapper.integrate`) while training runs on a thread
+    of its own (:class:`~h3edge.mapping.background.BackgroundTraining`), as the service runs it.
+    ``inline``: the service before that (:meth:`Mapper.process` per frame, one keyframe step whenever
+    no frame waits). ``settle_s``: after the last frame, keep training that long (the robot
+    standing still). ``marks``: (label, replay seconds) at which ``on_mark(label, t, results so far)``
+    is called with training paused, the map held (:meth:`Mapper.exclusive`) and the replay clock
+    stopped (an evaluation); a time of
+    ``LAST_FRAME`` calls it when the last frame has been handled. Returns one
     :class:`~h3edge.mapping.mapper.FrameResult` per frame, skipped ones included.
     """
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     results = []
-    t_start = clock()
+    clock = PausableClock()
 
     def progress(n: int) -> None:
         if progress_every and n % progress_every == 0:
             log.info("%d/%d frames in, %d voxels, %d keyframes, %d iterations between frames, %.2f s/frame so far",
                      n, len(idx), len(mapper.voxels), len(mapper.keyframes.keyframes),
-                     mapper.iterations["between_frames"], (clock() - t_start) / n)
+                     mapper.iterations["between_frames"], clock() / n)
 
-    def map_one(i: int) -> None:
+    def map_one(i: int, verb) -> None:
         t0 = clock()
         frame = seq[i]
-        results.append(mapper.process(frame, read_seconds=clock() - t0))
+        results.append(verb(frame, read_seconds=clock() - t0))
 
     if camera_hz is None:
         for n, i in enumerate(idx):
-            map_one(i)
+            map_one(i, mapper.process)
             progress(n + 1)
-    else:
-        if camera_hz <= 0:
-            raise ValueError(f"camera rate must be > 0 Hz, got {camera_hz}")
+        return results
+    if camera_hz <= 0:
+        raise ValueError(f"camera rate must be > 0 Hz, got {camera_hz}")
+    last_arrival = (len(idx) - 1) / camera_hz
+    # in time order, the last frame's at its arrival (before any timed mark from then on)
+    pending = sorted(marks, key=lambda m: (last_arrival, 0) if m[1] == LAST_FRAME else (m[1], 1))
+
+    def mark_due(last: bool = False) -> bool:
+        if not pending or on_mark is None or (pending[0][1] == LAST_FRAME) != last:
+            return False
+        if not last and pending[0][1] > clock():
+            return False
+        label, _ = pending.pop(0)
+        with clock.paused(), (trainer.paused() if trainer else contextlib.nullcontext()), mapper.exclusive():
+            on_mark(label, clock(), results)
+        return True
+
+    trainer = None if inline else BackgroundTraining(mapper).start()
+    verb = mapper.process if inline else mapper.integrate
+
+    def idle(until: float) -> None:
+        """Wait for the next event: inline trains one step, live lets its thread train."""
+        if inline and mapper.train_between_frames() is not None:
+            return
+        time.sleep(max(0.0, min(0.01, until - clock())))
+
+    try:
         nxt = 0  # position in idx of the oldest frame not yet mapped or skipped
         while nxt < len(idx):
-            arrived = min(len(idx), int((clock() - t_start) * camera_hz) + 1)
+            if mark_due():
+                continue
+            arrived = min(len(idx), int(clock() * camera_hz) + 1)
             if arrived > nxt:
                 for k in range(nxt, max(nxt, arrived - queue_depth)):  # overflowed the queue
                     results.append(FrameResult(idx[k], False, "queue_full"))
                 nxt = max(nxt, arrived - queue_depth)
-                map_one(idx[nxt])
+                map_one(idx[nxt], verb)
                 nxt += 1
                 progress(nxt)
-            elif mapper.train_between_frames() is None:
-                sleep(max(0.0, min(0.05, t_start + nxt / camera_hz - clock())))
-    t_end = clock() + settle_s
-    while settle_s > 0 and clock() < t_end:
-        if mapper.train_between_frames() is None:
-            break
+            else:
+                idle(min(nxt / camera_hz, pending[0][1] if pending and pending[0][1] != LAST_FRAME else np.inf))
+        while mark_due():  # timed marks passed while the last frames were handled
+            pass
+        mark_due(last=True)
+        t_end = max([last_arrival + settle_s] + [t for _, t in pending])
+        while clock() < t_end:
+            if not mark_due():
+                idle(pending[0][1] if pending else t_end)
+        while mark_due():
+            pass
+    finally:
+        if trainer is not None:
+            trainer.stop()
     return results
 
 

@@ -26,51 +26,31 @@ dataset (OUT_<dataset>.png: PSNR, SSIM and pixels off against time, both methods
 renders at the last frame (OUT_<dataset>_views.jpg: sensor | h3edge | TSDF | h3edge depth error |
 TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
 
-    python -m h3edge.bench.anytime [--datasets sim studio real] [--hz 30] [--out docs/bench_anytime]
+    python -m h3edge.bench.anytime [--datasets sim studio real] [--hz 30] [--modes live inline]
+        [--variant 'base:color_base.cell=0.01'] [--out research/bench_anytime]
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.bench.mapping import REAL, open_dataset, write_comparison
 from h3edge.bench.tables import markdown_table
-from h3edge.config import apply_overrides, load_profile
+from h3edge.config import apply_overrides, load_profile, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.metrics import mesh_to_mesh
 from h3edge.eval.tsdf import TsdfFusion
-from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.mapper import Mapper
 
 log = logging.getLogger("h3edge.bench.anytime")
 MESH_POINTS = 50_000  # surface samples per mesh for the holes share
-
-
-class PausableClock:
-    """Seconds since creation, less the time spent inside :meth:`paused` blocks."""
-
-    def __init__(self) -> None:
-        self._t0 = time.perf_counter()
-        self._paused = 0.0
-
-    def __call__(self) -> float:
-        return time.perf_counter() - self._t0 - self._paused
-
-    @contextlib.contextmanager
-    def paused(self):
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self._paused += time.perf_counter() - t
 
 
 @dataclass(frozen=True)
@@ -164,73 +144,34 @@ def warm_up(frames: list, settings) -> None:
 
 def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Checkpoint], views: list,
                   threshold: float, references: dict, mode: str) -> tuple[list[dict], dict, Mapper]:
-    """h3edge's replay in real time (``mode`` live or inline, as the module says); rows per
-    checkpoint, a summary, and the mapper at the end."""
+    """h3edge's replay in real time through :func:`~h3edge.apps.offline.map_sequence` (``mode``
+    live or inline, as the module says); rows per checkpoint, a summary, and the mapper at the end."""
     warm_up(frames, settings)
     mapper = Mapper(settings)
-    trainer = BackgroundTraining(mapper) if mode == "live" else None
-    clock = PausableClock()
-    rows, pending = [], list(marks)
-    skipped, dropped, n = 0, 0, len(frames)
+    rows: list[dict] = []
 
-    def score_now(mark: Checkpoint) -> None:
-        with clock.paused(), mapper.exclusive():
-            t = clock()
-            if mapper.field is None:
-                rows.append({"checkpoint": mark.label, "t_s": t, "frames_integrated": 0, "skipped": skipped})
-                return
-            mesh = mapper.mesh()
-            rows.append({"checkpoint": mark.label, "t_s": t, "frames_integrated": mapper.frames_mapped,
-                         "skipped": skipped, "training_steps": sum(mapper.iterations.values()),
-                         **score(mapper, views, threshold, mesh, references.get(mark.label))})
-            log.info("%s %s at %.1f s: %s", mode, mark.label, t, {k: round(v, 3) for k, v in rows[-1].items()
-                                                                   if isinstance(v, float)})
+    def score_now(label: str, t: float, results: list) -> None:
+        skipped = sum(r.reason == "queue_full" for r in results)
+        row = {"checkpoint": label, "t_s": t, "frames_integrated": mapper.frames_mapped, "skipped": skipped,
+               "training_steps": sum(mapper.iterations.values())}
+        if mapper.field is not None:
+            row.update(score(mapper, views, threshold, mapper.mesh(), references.get(label)))
+        rows.append(row)
+        log.info("%s %s at %.1f s: %s", mode, label, t, {k: round(v, 3) for k, v in row.items()
+                                                          if isinstance(v, float)})
 
-    def idle(until: float) -> None:
-        """Wait for the next event: inline trains (one step), live lets its thread train."""
-        if trainer is None and mapper.train_between_frames() is not None:
-            return
-        time.sleep(max(0.0, min(0.01, until - clock())))
-
-    if trainer is not None:
-        trainer.start()
-    try:
-        nxt = 0
-        while nxt < n:
-            now = clock()
-            if pending and pending[0].label != "last frame" and pending[0].t <= now:
-                score_now(pending.pop(0))
-                continue
-            arrived = min(n, int(now * hz) + 1)
-            if arrived > nxt:
-                if arrived - nxt > queue:
-                    skipped += arrived - queue - nxt
-                    nxt = arrived - queue
-                f = frames[nxt]
-                r = mapper.integrate(f) if trainer is not None else mapper.process(f)
-                dropped += not r.mapped
-                nxt += 1
-            else:
-                idle(min(nxt / hz, pending[0].t if pending else np.inf))
-        while pending[0].label != "last frame":
-            score_now(pending.pop(0))
-        score_now(pending.pop(0))  # the last frame
-        t_last = (n - 1) / hz
-        while pending:
-            if clock() >= pending[0].t:
-                score_now(pending.pop(0))
-            else:
-                idle(pending[0].t)
-    finally:
-        if trainer is not None:
-            trainer.stop()
+    timed = [(m.label, LAST_FRAME if m.label == "last frame" else m.t) for m in marks]
+    results = map_sequence(frames, mapper, progress_every=0, camera_hz=hz, queue_depth=queue,
+                              inline=mode == "inline", marks=timed, on_mark=score_now)
     tm = mapper.timings.summary()
     key = "integration" if mode == "live" else "frame"
-    summary = {"mode": mode, "frames_integrated": mapper.frames_mapped, "skipped": skipped, "dropped": dropped,
+    summary = {"mode": mode, "frames_integrated": mapper.frames_mapped,
+               "skipped": sum(r.reason == "queue_full" for r in results),
+               "dropped": sum(not r.mapped and r.reason != "queue_full" for r in results),
                "integration_ms_median": tm.get(key, {}).get("median_ms"),
                "integration_ms_p95": tm.get(key, {}).get("p95_ms"),
                "integration_wait_ms_median": tm.get("integration_wait", {}).get("median_ms"),
-               "training_steps": dict(mapper.iterations), "components": tm, "last_arrival_s": t_last}
+               "training_steps": dict(mapper.iterations), "components": tm}
     return rows, summary, mapper
 
 
@@ -270,7 +211,7 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def bench_dataset(name: str, seq, settings, args, title: str, threshold: float, out: Path) -> dict:
+def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, threshold: float, out: Path) -> dict:
     frames = [seq[i] for i in range(len(seq) if args.frames is None else min(args.frames, len(seq)))]
     held = getattr(seq, "heldout", None)
     held = [held[i] for i in range(len(held))] if held is not None and len(held) else frames[::10]
@@ -282,9 +223,10 @@ def bench_dataset(name: str, seq, settings, args, title: str, threshold: float, 
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs, mappers = {tsdf_label: tsdf_rows}, {}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
-    for mode in args.modes:
-        label = f"h3edge {mode}"
-        rows, summary, mapper = replay_h3edge(frames, settings, args.hz, args.queue, marks, views, threshold,
+    runs_h3 = [(f"h3edge {mode}", settings, mode) for mode in args.modes]
+    runs_h3 += [(f"h3edge live {label}", st, "live") for label, st in variants.items()]
+    for label, st, mode in runs_h3:
+        rows, summary, mapper = replay_h3edge(frames, st, args.hz, args.queue, marks, views, threshold,
                                               tsdf["meshes"], mode)
         if not args.components:
             del summary["components"]
@@ -319,21 +261,24 @@ def main(argv=None) -> int:
     ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "real"])
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    ap.add_argument("--modes", nargs="+", default=["live"], choices=["live", "inline"])
+    ap.add_argument("--modes", nargs="*", default=["live"], choices=["live", "inline"])
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL:SECTION.KEY=VALUE[;...]",
+                    help="one more live h3edge run with these settings changed")
     ap.add_argument("--hz", type=float, default=30.0, help="camera rate the frames arrive at")
     ap.add_argument("--queue", type=int, default=2, help="frames that may wait; older ones are skipped")
     ap.add_argument("--every-s", type=float, default=5.0)
     ap.add_argument("--still-s", type=float, nargs="*", default=[10.0, 30.0])
-    ap.add_argument("--views", type=int, default=10, help="held-out views scored at each checkpoint")
+    ap.add_argument("--views", type=int, default=8, help="held-out views scored at each checkpoint")
     ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
     ap.add_argument("--tsdf-voxel", type=float, default=0.01)
     ap.add_argument("--components", action="store_true", help="keep h3edge's timing components in the JSON")
     ap.add_argument("--work", default="out/bench_mapping", help="where the simulated scenes are cached")
-    ap.add_argument("--out", default="docs/bench_anytime", help="writes OUT.md, OUT.json and the pictures")
+    ap.add_argument("--out", default="research/bench_anytime", help="writes OUT.md, OUT.json and the pictures")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     profile = load_profile(args.profile)
     settings = apply_overrides(profile.map_settings(), args.set)
+    variants = dict(parse_variant(v, settings) for v in args.variant)
     out = Path(args.out)
     titles = {"sim": "default simulated scene", "studio": "studio simulated scene",
               "real": "real Kinect v1, 7-Scenes redkitchen dev", "tiny": "tiny simulated scene (160x120)"}
@@ -343,7 +288,8 @@ def main(argv=None) -> int:
             log.warning("real skipped: %s not present", REAL)
             continue
         seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
-        r = bench_dataset(ds, seq, settings, args, titles.get(ds, ds), profile.eval.depth_error_threshold, out)
+        r = bench_dataset(ds, seq, settings, variants, args, titles.get(ds, ds), profile.eval.depth_error_threshold,
+                          out)
         results.append(r)
         print(format_result(r), flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,7 @@ import math
 import numba as nb
 
 
-@nb.njit(parallel=True, fastmath=False, cache=True)
+@nb.njit(parallel=True, fastmath=False, cache=True, nogil=True)
 def backproject_into(depth, fx, fy, cx, cy, offset, rot, trans, out):
     """Points (H, W, 3) of a z-depth image: ``rot @ p_cam + trans``; NaN where the depth is not a
     finite positive number."""

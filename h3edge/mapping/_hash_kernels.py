@@ -50,7 +50,7 @@ def fwd(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):
     else:
         fwd_any(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out)
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def fwd2(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):
     n = xn.shape[0]
     L = scales.shape[0]
@@ -68,7 +68,7 @@ def fwd2(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):
             out[i, 2 * l] = a0
             out[i, 2 * l + 1] = a1
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def fwd_any(xn, table, scales, dense, T, p0, p1, p2, d0, d1, d2, out):
     n = xn.shape[0]
     L = scales.shape[0]
@@ -95,7 +95,7 @@ def bwd(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touche
     else:
         bwd_any(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touched)
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def bwd2(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touched):
     n = xn.shape[0]
     L = scales.shape[0]
@@ -112,7 +112,7 @@ def bwd2(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touch
                 grad_buf[row, 1] += w * g1
                 touched[row] = True
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def bwd_any(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, touched):
     n = xn.shape[0]
     L = scales.shape[0]
@@ -128,7 +128,7 @@ def bwd_any(xn, grad_out, scales, dense, T, p0, p1, p2, d0, d1, d2, grad_buf, to
                     grad_buf[row, f] += w * grad_out[i, l * F + f]
                 touched[row] = True
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def collect(grad_buf, touched, rows, grads_out):
     # Gather the touched rows' gradients into a compact array, then clear buffer and flags.
     for k in nb.prange(rows.shape[0]):
@@ -144,7 +144,7 @@ def collect(grad_buf, touched, rows, grads_out):
 SCAN_BLOCK = 4096
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+@nb.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def adam_touched(table, m, v, grad_buf, touched, lr, b1, b2, eps, c1, c2, counts):
     # Lazy Adam on every flagged row, its gradient read from grad_buf; clears gradient and flag.
     # counts[block] = the rows updated in that block (len(counts) = ceil(rows / SCAN_BLOCK)).

@@ -44,7 +44,7 @@ def voxel_at(cx, cy, cz, hkeys, hids):
             return -1
         s = (s + 1) & mask
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def build_table(keys, hkeys, hids):
     """Insert packed ``keys`` (unique) with ids 0..n-1 into the empty table ``hkeys`` / ``hids``
     (power-of-two length, more slots than keys)."""
@@ -56,7 +56,7 @@ def build_table(keys, hkeys, hids):
         hkeys[s] = keys[i]
         hids[s] = i
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def voxel_point_stats(pts, vs, hkeys, counts, sums):
     """Group points (metres; rows with a non-finite coordinate are skipped) by the voxel that
     contains them, through the empty table ``hkeys`` (power-of-two length): per slot, the voxel's
@@ -136,7 +136,7 @@ def _box_clip(o, dirs, r, t0, t1, lo, hi):
         t0, t1 = max(t0, ta), min(t1, tb)
     return t0, t1
 
-@nb.njit(parallel=True, fastmath=False, cache=True)
+@nb.njit(parallel=True, fastmath=False, cache=True, nogil=True)
 def march(o, dirs, nears, far, step, hkeys, hids, box_lo, box_hi, vs, vv, priors, exit_tol, out):
     # box_lo / box_hi: integer corners of the allocated voxels' bounding box (hi exclusive)
     lo = (box_lo[0] * vs, box_lo[1] * vs, box_lo[2] * vs)
@@ -206,7 +206,7 @@ def cell_of(px, py, pz, hkeys, hids, eps):
             return v, cx, cy, cz
     return -1, gx, gy, gz
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def locate_cells(pts, hkeys, hids, vs, eps, vox, frac):
     """Voxel id (-1 outside) of points (metres) and their position inside it, clipped to [0, 1]^3
     (:func:`cell_of`)."""
@@ -218,7 +218,7 @@ def locate_cells(pts, hkeys, hids, vs, eps, vox, frac):
         frac[i, 1] = min(max(py - gy, 0.0), 1.0)
         frac[i, 2] = min(max(pz - gz, 0.0), 1.0)
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
     """Voxel id (-1 outside) and trilinear prior (0 outside) of points (metres) (:func:`cell_of`)."""
     for i in nb.prange(pts.shape[0]):
@@ -230,7 +230,7 @@ def locate_prior(pts, hkeys, hids, vs, vv, priors, eps, sdf, vox):
                             min(max(pz - gz, 0.0), 1.0), vv, priors)
         vox[i], sdf[i] = v, s
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def allocated_samples(o, dirs, t_lo, t_hi, step, hkeys, hids, box_lo, box_hi, vs, vv, priors, offsets,
                       ts, prior, fill):
     """Samples every ``step`` along each ray from ``t_lo`` to ``t_hi`` that lie in allocated voxels.

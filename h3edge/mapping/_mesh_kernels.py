@@ -6,7 +6,7 @@ lattice indices into points. Module-level so that numba's disk cache holds acros
 import numba as nb
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def mark(rel, r, shape, points, cubes):
     """For voxels at lattice offsets ``rel`` (V, 3) (= (ijk - origin) * r): set ``points`` (flat,
     C order over ``shape``) at their (r+1)^3 lattice points and ``cubes`` at the *upper* corner of
@@ -24,7 +24,7 @@ def mark(rel, r, shape, points, cubes):
                         cubes[base + c] = True
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def to_points(flat, shape, origin_r, cell, out):
     """Points (N, 3) metres of flat lattice indices: (unravel(flat) + origin * r) * cell."""
     sy, sz = shape[1], shape[2]

@@ -11,7 +11,7 @@ import numba as nb
 import numpy as np
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def pool_min(depth, stride, out):
     """``out`` (H // stride, W // stride) = the minimum of each ``stride`` x ``stride`` block of
     ``depth`` (0 = invalid), 0 where any pixel of the block is invalid or not finite."""

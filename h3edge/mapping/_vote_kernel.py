@@ -14,7 +14,7 @@ import numpy as np
 from h3edge.mapping._trilinear_kernel import corner_weight
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, margin, behind):
     """For voxel ``ids[i]`` with its minimum corner ``corners[i]`` (world, m), each of its n^3
     cells (centre at ``corner + (a + 0.5, b + 0.5, c + 0.5) * cell``, flat index ``(a * n + b) * n
@@ -59,7 +59,7 @@ def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, 
                             votes[row, k] -= 1
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def in_view(corners, rot, trans, fx, fy, cx, cy, w, h, size, out):
     """``out[i]`` = some corner of the cube at ``corners[i]`` (side ``size``) lies in front of the
     camera and its bounding box of projected corners overlaps the image, or the cube straddles the
@@ -83,7 +83,7 @@ def in_view(corners, rot, trans, fx, fy, cx, cy, w, h, size, out):
         out[i] = front and (back or (umax >= 0 and umin < w and vmax >= 0 and vmin < h))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def draw_free_cells(votes, vertices, priors, n, min_votes, near, count, max_tries, seed):
     """Up to ``count`` flat indices ``row * n^3 + cell`` drawn uniformly (with replacement) among
     the cells of ``votes`` (rows, n^3) with at least ``min_votes`` votes whose centre's prior

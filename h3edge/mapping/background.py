@@ -2,15 +2,22 @@
 while frames are integrated on the caller's thread (:meth:`Mapper.integrate`).
 
 Each step is :meth:`Mapper.train_between_frames` (the selected keyframes and the newest
-integrated frame no step has used yet); it holds the map lock for the step and gives way to
-integration, snapshots and checkpoints (:meth:`Mapper.exclusive`) between steps, so a frame waits
-for at most the step in progress and training never waits for a frame. When there is nothing to
+integrated frame no step has used yet); it holds the map lock only to draw its rays and to apply
+its updates, and gives way there to integration, snapshots and checkpoints
+(:meth:`Mapper.exclusive`): its forward and backward passes run beside integration, on the other
+core, so a frame waits at most for a step's ray draw or update and training never waits for a
+frame. When there is nothing to
 train on yet (no keyframe), the thread polls every ``idle_s``. A step that raises is logged and
 counted in :attr:`errors`; the loop goes on.
+
+Integration and training both call numba's parallel kernels, now from two threads: that needs a
+thread-safe numba threading layer (OpenMP or TBB; numba picks one when it finds it). Numba's own
+``workqueue`` layer is not, and :meth:`BackgroundTraining.start` refuses to run on it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 
@@ -21,8 +28,9 @@ log = logging.getLogger(__name__)
 
 class BackgroundTraining:
     """Runs ``mapper``'s training steps on a thread of its own between :meth:`start` and
-    :meth:`stop`. ``with mapper.exclusive():`` holds the steps off (an evaluation, a copy of the
-    map); ``mapper`` is read each step, so assigning another mapper (a load) takes effect at once."""
+    :meth:`stop`. ``with mapper.exclusive():`` holds the steps' map updates off (a copy of the
+    map), :meth:`paused` the steps themselves; ``mapper`` is read each step, so assigning another
+    mapper (a load) takes effect at once."""
 
     def __init__(self, mapper: Mapper, idle_s: float = 0.01):
         self.mapper = mapper
@@ -31,10 +39,15 @@ class BackgroundTraining:
         self.errors = 0  # steps that raised
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._turn = threading.Condition()  # paused() against the step in progress
+        self._pauses = 0
+        self._in_step = False
 
     def start(self) -> BackgroundTraining:
+        """Start the training thread (RuntimeError on numba's thread-unsafe workqueue layer)."""
         if self._thread is not None and self._thread.is_alive():
             return self
+        _check_threading_layer()
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="h3edge-training", daemon=True)
         self._thread.start()
@@ -43,6 +56,8 @@ class BackgroundTraining:
     def stop(self, timeout: float = 30.0) -> None:
         """Stop after the step in progress."""
         self._stop.set()
+        with self._turn:
+            self._turn.notify_all()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -51,15 +66,51 @@ class BackgroundTraining:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    @contextlib.contextmanager
+    def paused(self):
+        """No step runs inside this block, not even its forward and backward passes (which
+        :meth:`Mapper.exclusive` lets finish): the step in progress ends first. For work that must
+        have the machine to itself (a benchmark's scoring, whose time does not count)."""
+        with self._turn:
+            self._pauses += 1
+            self._turn.wait_for(lambda: not self._in_step)
+        try:
+            yield
+        finally:
+            with self._turn:
+                self._pauses -= 1
+                self._turn.notify_all()
+
     def _run(self) -> None:
         while not self._stop.is_set():
+            with self._turn:
+                self._turn.wait_for(lambda: self._pauses == 0 or self._stop.is_set())
+                if self._stop.is_set():
+                    break
+                self._in_step = True
             try:
                 trained = self.mapper.train_between_frames() is not None
             except Exception:  # same policy as a frame: log, count, go on
                 log.exception("background training step failed")
                 self.errors += 1
                 trained = False
+            finally:
+                with self._turn:
+                    self._in_step = False
+                    self._turn.notify_all()
             if trained:
                 self.steps += 1
             else:
                 self._stop.wait(self.idle_s)
+
+
+def _check_threading_layer() -> None:
+    import numba
+    import numpy as np
+
+    from h3edge.geometry.camera import Intrinsics, backproject
+
+    backproject(np.ones((2, 2), np.float32), Intrinsics(2, 2, 1.0, 1.0, 1.0, 1.0))  # a parallel kernel: layer chosen
+    if numba.threading_layer() == "workqueue":
+        raise RuntimeError("training on its own thread needs a thread-safe numba threading layer (OpenMP: "
+                           "libgomp, or TBB >= 2021.6); only numba's workqueue layer is available here")

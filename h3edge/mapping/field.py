@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from h3edge.mapping.color_base import ColorBase, compose
 from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
 from h3edge.mapping.texture_grid import QuasiHeteroTexture, UniformTexture
 from h3edge.mapping.texture_patterns import TextureConfig
@@ -82,6 +83,9 @@ class Field(nn.Module):
         self.sdf_mlp = mlp(geo.out_dim, cfg.sdf_hidden, cfg.sdf_layers, 1).to(device)
         self.color_mlp = nn.Sequential(mlp(self.texture.out_dim, cfg.color_hidden, cfg.color_layers, 3),
                                        nn.Sigmoid()).to(device)
+        # the fused colour base the MLP's colour is composed with (:mod:`h3edge.mapping.color_base`);
+        # the mapper's, set by it; not a parameter (fused at integration, never trained)
+        self.color_base: ColorBase | None = None
 
     def hash_grids(self) -> list[HashGrid]:
         return [self.geo_grid, self.texture.grid]
@@ -100,9 +104,17 @@ class Field(nn.Module):
         return prior.index_add(0, idx, res), inside
 
     def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+        """RGB (N, 3) in [0, 1] at world points (N, 3) metres: the colour MLP on the texture
+        features, composed with the fused colour base where it knows the colour
+        (:func:`~h3edge.mapping.color_base.compose`). ``voxel_index``: each point's leaf voxel (-1
+        or None: unknown, no warps apply)."""
         if voxel_index is None:  # unknown voxels: no warps apply (identity features only)
             voxel_index = torch.full((len(points),), -1, dtype=torch.long, device=points.device)
-        return self.color_mlp(self.texture(points, voxel_index))
+        rgb = self.color_mlp(self.texture(points, voxel_index))
+        if self.color_base is None or len(self.color_base) == 0 or len(points) == 0:
+            return rgb
+        base, known = self.color_base.sample(points)
+        return compose(rgb, base.to(rgb.dtype), known)
 
     def sparse_step(self, lr: float) -> None:
         for g in self.hash_grids():

@@ -1,20 +1,23 @@
 """The incremental mapper: owns the voxel map, the field, the optimisers and the keyframe set,
 and turns a stream of posed RGB-D frames into a map you can mesh and render (Sec. IV).
 
-Per frame (timed per component, the paper's Table I names): validate and clean the frame
-(``read``); allocate leaf voxels and initialise their SDF priors (``priors``); every
-``update_interval`` frames, determine the voxels' texture patterns and refresh the texture
-encoder's warps (``texture``); decide keyframe insertion (scored by the colour gradient) and
-pick the keyframes for each iteration (``keyframes``); run ``iterations``
-optimisation steps on ``rays_per_iteration`` rays drawn evenly from the current frame and the
-selected keyframes (``training``). A bad frame is dropped with a reason (logged and counted); it
-never touches the map.
+Integration (:meth:`Mapper.integrate`, every frame that arrives; timed per component, the paper's
+Table I names): validate and clean the frame (``read``); allocate leaf voxels and initialise their
+SDF priors (``priors``); mark free space and the fine free-space votes; fuse its colours into the
+colour base (``color_base``, :mod:`h3edge.mapping.color_base`); every ``update_interval`` frames,
+determine the voxels' texture patterns and refresh the texture encoder's warps (``texture``);
+decide keyframe insertion, scored by the colour gradient (``keyframes``). A bad frame is dropped
+with a reason (logged and counted); it never touches the map.
 
-Between frames (:meth:`Mapper.train_between_frames`, called by the service whenever no frame
-is waiting and by the offline replay at a camera rate): one more iteration on the selected
-keyframes alone (``idle_training``), so the map keeps improving while the camera is slower than
-the mapper or the robot stands still. One call is one iteration, so a new frame waits at most
-that long.
+Training (:meth:`Mapper.train_between_frames`): one optimisation step on ``rays_per_iteration``
+rays drawn evenly from the selected keyframes and the newest integrated frame no step has used yet
+(``idle_training``). The service and the live replay run it back to back on a thread of their own
+(:class:`~h3edge.mapping.background.BackgroundTraining`), apart from integration: a frame waits at
+most for the step in progress (the map lock, :meth:`Mapper.exclusive`, goes to integration first)
+and training never waits for a frame.
+
+The paper's protocol (:meth:`Mapper.process`): integrate, then ``iterations`` steps on the frame and
+the keyframes selected for each (``training``), one frame after the other.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from h3edge.geometry.camera import Intrinsics, backproject, pixel_rays_camera, r
 from h3edge.geometry.depth_edges import discontinuity_jump, near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.cell_votes import CellVotes, VoteConfig
+from h3edge.mapping.color_base import ColorBase, ColorBaseConfig
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
 from h3edge.mapping.gradient import color_gradient
@@ -115,7 +119,8 @@ class MapperConfig:
     # the field's phantom surfaces sit where priors are unset (docs/silhouettes.md). Support also
     # ends voxels.observed_behind behind the surfaces the frames saw (no back shells)
     mesh_min_support: float = 0.25
-    # train on keyframes whenever no frame waits (service; offline replay at a camera rate)
+    # train on a thread of its own, apart from integration, in the service and the live replay
+    # (false: each frame trains inline with ``iterations`` steps and nothing trains between frames)
     train_between_frames: bool = True
     seed: int = 0
 
@@ -142,6 +147,7 @@ class MapSettings:
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     free_space: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
     votes: VoteConfig = dataclasses.field(default_factory=VoteConfig)
+    color_base: ColorBaseConfig = dataclasses.field(default_factory=ColorBaseConfig)
 
     def __post_init__(self) -> None:
         self.votes.cells_per_side(self.voxels.voxel_size)  # refused when the profile loads, not at the first frame
@@ -217,6 +223,7 @@ class Mapper:
         self.free_space = FreeSpace(settings.free_space, settings.voxels.voxel_size, settings.voxels.truncation)
         self.cell_votes = CellVotes(settings.votes, settings.voxels.voxel_size, settings.train.sdf_behind,
                                     settings.voxels.max_voxels)
+        self.color_base = ColorBase(settings.color_base) if settings.color_base.enabled else None
         # keys of the voxels allocated or observed since the last take_changed_keys() (live mesh updates)
         self._changed: list[np.ndarray] = []
         self.timings = Timings()
@@ -232,6 +239,7 @@ class Mapper:
         self.iterations = {"frame": 0, "between_frames": 0}  # optimisation steps, by when they ran
         self._rays_cache: dict[Intrinsics, np.ndarray] = {}
         self._untrained: ImageFrame | None = None  # the newest integrated frame no step has used yet
+        self._texture_pending: tuple[ImageFrame, np.ndarray] | None = None  # left for the training thread
         self._lock = threading.RLock()  # the map: integration, training steps, snapshots
         self._turns = threading.Condition()  # exclusive() callers waiting go before training steps
         self._waiting = 0
@@ -256,6 +264,7 @@ class Mapper:
         torch.manual_seed(self.cfg.seed)
         self.field = Field(self.settings.field, self.bound, self.settings.voxels.voxel_size, self.device,
                            self.settings.texture)
+        self.field.color_base = self.color_base
         params = list(self.field.sdf_mlp.parameters()) + list(self.field.color_mlp.parameters())
         self.optimizer = torch.optim.Adam(params, lr=self.settings.train.lr)
 
@@ -323,18 +332,22 @@ class Mapper:
         return FrameResult(frame.index, False, reason)
 
     # ------------------------------------------------------------------ frame
-    def integrate(self, frame: Frame, read_seconds: float = 0.0) -> FrameResult:
+    def integrate(self, frame: Frame, read_seconds: float = 0.0, defer_texture: bool | None = None) -> FrameResult:
         """Integrate one frame into the explicit parts of the map, without training: check it,
-        allocate voxels and their priors, mark free space and cell votes, determine texture
-        patterns (every ``update_interval`` frames), decide keyframe insertion. The frame becomes
+        allocate voxels and their priors, mark free space and cell votes, fuse its colours into the
+        colour base, determine texture patterns (every ``update_interval`` frames), decide keyframe
+        insertion. The frame becomes
         the newest frame :meth:`train_between_frames` trains on until a step has used it.
         ``frame``: colour uint8 (H, W, 3), depth float32 (H, W) in metres, pose camera-to-world
         (OpenCV optical), host numpy arrays. ``read_seconds``: the caller's reading / decoding
         time, added to ``read``. Timed as ``integration`` (the call's own work, ``read_seconds``
         included); its wait for the map (a training step in progress on another thread) apart, as
-        ``integration_wait``. A dropped frame changes nothing in the map. Thread-safe
-        against :meth:`train_between_frames` and :meth:`exclusive` on other threads."""
+        ``integration_wait``. ``defer_texture`` (default: ``train_between_frames``): leave a due
+        texture pattern determination (tens of ms) to the next :meth:`train_between_frames` call,
+        on the training thread. A dropped frame changes nothing in the map. Thread-safe against
+        :meth:`train_between_frames` and :meth:`exclusive` on other threads."""
         t_frame = time.perf_counter()
+        defer_texture = self.cfg.train_between_frames if defer_texture is None else defer_texture
         code, reason = self.check_frame(frame)
         if code:
             return self._drop(frame, code, reason)
@@ -347,12 +360,12 @@ class Mapper:
         with self.exclusive():
             waited = time.perf_counter() - t_wait
             self.timings.add("integration_wait", waited)
-            result = self._commit(frame, current, pts)
+            result = self._commit(frame, current, pts, defer_texture)
         if result.mapped:
             self.timings.add("integration", time.perf_counter() - t_frame - waited + read_seconds)
         return result
 
-    def _commit(self, frame: Frame, current: ImageFrame, pts: np.ndarray) -> FrameResult:
+    def _commit(self, frame: Frame, current: ImageFrame, pts: np.ndarray, defer_texture: bool) -> FrameResult:
         """The map-changing part of :meth:`integrate` (under the map lock)."""
         with self.timings.time("priors"):
             set_before = self.voxels.prior_set.copy()
@@ -365,9 +378,17 @@ class Mapper:
         if self.cell_votes.enabled:
             with self.timings.time("cell_votes"):
                 self.cell_votes.mark(self.voxels, current.depth, frame.intrinsics, current.pose)
+        if self.color_base is not None:
+            with self.timings.time("color_base"):
+                self.color_base.fuse(current.color, current.depth, frame.intrinsics, current.pose)
         if self.field is None:  # the first frame that maps places the grids' reference cube
             self._place_field(current.pose[:3, 3])
-        grad = self._determine_texture(current, pts)
+        grad = None
+        if self._texture_due():
+            if defer_texture:  # the training thread determines it (the newest due frame wins)
+                self._texture_pending = (current, pts)
+            else:
+                grad = self._determine_texture(current, pts)
         with self.timings.time("keyframes"):
             is_kf = self._update_keyframes(frame.index, current, pts, grad)
         self._untrained = current
@@ -380,7 +401,7 @@ class Mapper:
         steps on rays drawn from it and the keyframes selected for each step (timed as
         ``training``; the whole as ``frame``). Arguments and drops as :meth:`integrate`."""
         t_frame = time.perf_counter()
-        result = self.integrate(frame, read_seconds)
+        result = self.integrate(frame, read_seconds, defer_texture=False)
         if not result.mapped:
             return result
         with self.exclusive():
@@ -430,12 +451,14 @@ class Mapper:
         self.bound = np.stack([centre - self.cfg.extent / 2, centre + self.cfg.extent / 2])
         self._build_field()
 
-    def _determine_texture(self, current: ImageFrame, pts: np.ndarray) -> np.ndarray | None:
-        """Texture patterns every ``update_interval`` frames (H3); the colour gradient image when
-        it was computed (the keyframe score reuses it)."""
+    def _texture_due(self) -> bool:
+        """Texture patterns are determined on every ``update_interval``-th mapped frame (H3)."""
         tex = self.settings.texture
-        if not tex.quasi_heterogeneous or self.frames_mapped % max(1, tex.update_interval):
-            return None
+        return tex.quasi_heterogeneous and self.frames_mapped % max(1, tex.update_interval) == 0
+
+    def _determine_texture(self, current: ImageFrame, pts: np.ndarray) -> np.ndarray:
+        """Determine texture patterns on ``current`` and refresh the warps; the colour gradient
+        image (the keyframe score reuses it)."""
         with self.timings.time("texture"):
             grad = color_gradient(current.color, current.depth, self.gradient_jump(current.intrinsics))
             self.patterns.update(current.color, current.depth, current.intrinsics, current.pose, pts,
@@ -443,13 +466,32 @@ class Mapper:
             self.refresh_warps()
         return grad
 
+    def _determine_pending_texture(self) -> None:
+        """On the training thread: the texture determination integration left for it, its frame-only
+        part (gradient, line segments) beside integration, the pattern and warp update under the
+        map lock."""
+        with self._training_turn():
+            pending, self._texture_pending = self._texture_pending, None
+        if pending is None:
+            return
+        current, pts = pending
+        t0 = time.perf_counter()
+        grad = color_gradient(current.color, current.depth, self.gradient_jump(current.intrinsics))
+        lifted = (self.patterns.observe(current.color, current.depth, current.intrinsics, current.pose)
+                  if self.settings.texture.max_directions > 0 else None)
+        with self._training_turn():
+            self.patterns.update(current.color, current.depth, current.intrinsics, current.pose, pts,
+                                 self.voxels.locate, self.settings.voxels.voxel_size, grad, lifted)
+            self.refresh_warps()
+        self.timings.add("texture", time.perf_counter() - t0)
+
     def _update_keyframes(self, frame_id: int, current: ImageFrame, pts: np.ndarray, grad: np.ndarray | None) -> bool:
         """Insert the frame as a keyframe when the coverage rule says so (scored per voxel by the
         colour gradient with ``gradient_aided``); whether it was."""
         stride = self.cfg.observe_stride
         sub = current.pix[::stride]
         vox, _ = self.voxels.locate(pts.reshape(-1, 3)[sub])
-        observed = np.unique(vox[vox >= 0])
+        observed = np.flatnonzero(np.bincount(vox[vox >= 0], minlength=len(self.voxels)))  # np.unique, O(n)
         if not self.keyframes.should_insert(observed):
             return False
         scores = None
@@ -465,27 +507,35 @@ class Mapper:
         """One optimisation step on the keyframes the coverage rule selects and on the newest
         integrated frame when no step has used it yet (:meth:`integrate`); its losses (floats), or
         None when there is nothing to train on yet (or the profile turns it off). Timed as
-        ``idle_training``. Safe to call from a training thread of its own: the step holds the map
-        lock and gives way to :meth:`exclusive` callers between steps."""
+        ``idle_training``. Safe to call from a training thread of its own while another thread
+        integrates: the step holds the map lock to draw its rays and to apply its updates, and gives
+        way to :meth:`exclusive` callers there; its forward and backward passes only read the map
+        and run beside integration."""
         if not self.cfg.train_between_frames:
             return None
+        if self._texture_pending is not None:
+            self._determine_pending_texture()
+        t0 = time.perf_counter()
         with self._training_turn():
             if self.field is None or not self.keyframes.keyframes or len(self.voxels) == 0:
                 return None
-            with self.timings.time("idle_training"):
-                frames = [k.payload for k in self.keyframes.select() if k.payload is not None]
-                if self._untrained is not None:
-                    frames.insert(0, self._untrained)
-                    self._untrained = None
-                if not frames:
-                    return None
-                return self._step(self._sample_rays(frames), "between_frames")
+            frames = [k.payload for k in self.keyframes.select() if k.payload is not None]
+            if self._untrained is not None:
+                frames.insert(0, self._untrained)
+                self._untrained = None
+            if not frames:
+                return None
+            rays = self._sample_rays(frames)
+        losses = self._step(rays, "between_frames", self._training_turn)
+        self.timings.add("idle_training", time.perf_counter() - t0)
+        return losses
 
-    def _step(self, rays: RayBatch, when: str) -> dict:
+    def _step(self, rays: RayBatch, when: str, commit=contextlib.nullcontext) -> dict:
         losses = train_step(self.field, self.voxels, rays, self.optimizer, self.train_cfg, self.settings.render.near,
                             self.generator, self.prior_opt,
-                            self.cell_votes if self.cell_votes.enabled else None)
-        self.iterations[when] += 1
+                            self.cell_votes if self.cell_votes.enabled else None, commit)
+        with commit():
+            self.iterations[when] += 1
         if self.step_hook is not None:
             self.step_hook()
         return losses
@@ -609,6 +659,8 @@ class Mapper:
             meta.update(_renamed_meta(prefix, pmeta))
             arrays.update(_prefixed(prefix, parrays))
         arrays.update(_prefixed("votes", self.cell_votes.state_dict()))
+        if self.color_base is not None:
+            arrays.update(_prefixed("color_base", self.color_base.state_dict()))
         return meta, arrays
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
@@ -654,6 +706,8 @@ class Mapper:
         if "free/keys" in arrays:  # checkpoints from before the free-space record have none
             self.free_space.load_state_dict(meta, _unprefixed("free", arrays))
         self.cell_votes.load_state_dict(_unprefixed("votes", arrays))
+        if self.color_base is not None:  # a checkpoint from before the base (or without it) starts it empty
+            self.color_base.load_state_dict(_unprefixed("color_base", arrays))
         self.frames_mapped = int(meta["frames_mapped"])
         self.dropped = dict(meta["dropped"])
         self.last_timestamp = meta["last_timestamp"]
@@ -701,6 +755,7 @@ class Mapper:
                 "texture_patterns": self.patterns.nbytes,
                 "free_space": self.free_space.nbytes,
                 "cell_votes": self.cell_votes.nbytes,
+                "color_base": self.color_base.nbytes if self.color_base is not None else 0,
             },
         }
 

@@ -284,14 +284,27 @@ class TexturePatterns:
         self.dirs[ids], self.dir_weights[ids], self.n_dirs[ids] = D, W, n
 
     # ------------------------------------------------------------------ update
+    def observe(self, rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's line segments lifted to world space (ends (N, 2, 3) m, weights (N,)): the
+        part of :meth:`update` that reads only the frame (no pattern or map state), so that it can
+        run where the map is not held."""
+        if self._detector is None:
+            self._detector = LineDetector()
+        segs, w = self._detector(rgb)
+        ends, w, _ = lift_segments(segs, w, depth, intr, c2w, self.cfg)
+        return ends, w
+
     def update(self, rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, points: np.ndarray,
-               locate, voxel_size: float, g: np.ndarray) -> dict:
+               locate, voxel_size: float, g: np.ndarray, lifted: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> dict:
         """One determination on a frame: colour-gradient fusion, lines, direction fusion.
 
         ``points``: the frame's back-projected world points (H, W, 3) (NaN where invalid);
         ``locate(points) -> (voxel ids, ...)`` maps points to allocated voxels; ``g``: the frame's
         per-pixel colour gradient (:func:`~h3edge.mapping.gradient.color_gradient`, occlusion edges
-        zeroed with the mapper's depth-edge jump)."""
+        zeroed with the mapper's depth-edge jump); ``lifted``: :meth:`observe` of this frame, when
+        already known."""
         cfg = self.cfg
         s = max(1, cfg.stride)
         sub = (slice(None, None, s), slice(None, None, s))
@@ -301,10 +314,7 @@ class TexturePatterns:
         self.fuse_gradient(ids, cnt, gm)
         lines = 0
         if cfg.max_directions > 0:
-            if self._detector is None:
-                self._detector = LineDetector()
-            segs, w = self._detector(rgb)
-            ends, w, _ = lift_segments(segs, w, depth, intr, c2w, cfg)
+            ends, w = self.observe(rgb, depth, intr, c2w) if lifted is None else lifted
             lines = len(ends)
             seg, vx = segment_voxels(ends, locate, voxel_size)
             if len(seg):

@@ -37,6 +37,8 @@ fits Kinect noise, docs/continuous_training.md).
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -201,12 +203,17 @@ def reading_inside(neural_field: Field, voxels: VoxelMap, points: tuple[np.ndarr
 
 def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
                cfg: TrainConfig, near: float, generator: torch.Generator | None = None,
-               prior_opt: PriorAdam | None = None, votes: CellVotes | None = None) -> dict[str, float]:
+               prior_opt: PriorAdam | None = None, votes: CellVotes | None = None,
+               commit: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
     """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
     lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows. Free-space
     samples start at ``near`` (m). ``votes``: band samples behind the depth in cells the frames
-    voted free take no SDF target (:mod:`h3edge.mapping.cell_votes`)."""
+    voted free take no SDF target (:mod:`h3edge.mapping.cell_votes`). ``commit``: a context the
+    optimiser updates run in (the map lock, when integration runs on another thread meanwhile:
+    the forward and backward passes only read the map, and a prior tensor that integration grew
+    meanwhile takes the gradient the step computed)."""
     tr = voxels.cfg.truncation
+    priors_used = voxels.priors
     t, b0 = sample_depths(rays.depth, cfg, tr, near, generator)
     if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
         t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, near, generator), t[:, b0:]], 1)
@@ -272,10 +279,11 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
         loss = loss + w.seen_free * l_free_cells
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    optimizer.step()
-    if prior_opt is not None:
-        prior_opt.step(voxels)
-    neural_field.sparse_step(cfg.lr)
+    with commit():
+        optimizer.step()
+        if prior_opt is not None:
+            prior_opt.step(voxels, priors_used)
+        neural_field.sparse_step(cfg.lr)
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
             "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean()),
             "carved": carved, "surface_rgb": float(l_surf.detach()) if l_surf is not None else 0.0,

@@ -446,8 +446,15 @@ class PriorAdam:
         self.steps = int(meta["steps"])
 
     @torch.no_grad()
-    def step(self, voxels: VoxelMap) -> int:
+    def step(self, voxels: VoxelMap, used: torch.Tensor | None = None) -> int:
+        """One update of the vertices with a gradient; the number updated. ``used``: the prior
+        tensor the gradient was computed on, when the map may have grown it since (its gradient
+        carries over to the grown tensor: ids are stable)."""
         p = voxels.priors
+        if used is not None and used is not p and used.grad is not None:
+            g = torch.zeros_like(p)
+            g[:len(used)] = used.grad
+            p.grad, used.grad = g, None
         if p.grad is None:
             return 0
         if len(self.m) < len(p):

@@ -38,11 +38,14 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     free = 2 * 24 * settings.free_space.max_cells if settings.free_space.enabled else 0
     # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy
     votes = 2 * settings.voxels.max_voxels * settings.votes.cells_per_side(settings.voxels.voxel_size) ** 3
-    left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes
+    # the fused colour base at its cap: the map's and a query's copy, and the checkpoint's rows
+    base = settings.color_base.nbytes()
+    base = 2 * base + base * 3 // 4
+    left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes - base
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
             "query_working_set": working, "checkpoint_capture": checkpoint, "frame_buffers": frames,
-            "free_space": free, "cell_votes": votes,
+            "free_space": free, "cell_votes": votes, "color_base": base,
             "keyframes": max(0, left),
             "keyframe_bytes": keyframe_bytes, "max_keyframes": int(cap),
             "keyframe_cap_bytes": max(left, 8 * keyframe_bytes),  # the keyframe set's byte cap (max_bytes)

@@ -52,6 +52,7 @@ from h3edge.io.protocol import (
 )
 from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import Frame
+from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
 from h3edge.mapping.mapper import Mapper, MapSettings
 from h3edge.mapping.mesh import working_bytes
@@ -133,7 +134,12 @@ class MapService:
             resumed, self.resumed_from = self.checkpoints.resume()
             if resumed is not None:
                 self._adopt(resumed)
-        self.mapper.step_hook = self._serve_requests
+        # training on a thread of its own, apart from integration (the profile's
+        # mapper.train_between_frames); without it each frame trains inline (the paper's iterations)
+        # and the map copies are handed out between those steps
+        self.trainer = BackgroundTraining(self.mapper) if self.settings.mapper.train_between_frames else None
+        if self.trainer is None:
+            self.mapper.step_hook = self._serve_requests
         self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
         self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error)
                     if ros is not None else None)
@@ -152,7 +158,6 @@ class MapService:
         self._last_save_request: float | None = None
         self._view: MapView | None = None
         self._view_time = 0.0
-        self._counts = collections.Counter()  # service-level counters (idle-training errors)
         self._drops = collections.Counter()  # service-level frame drop reasons
         self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
         self._delays: collections.deque[float] = collections.deque(maxlen=300)
@@ -178,6 +183,8 @@ class MapService:
         mapper.timings = self.mapper.timings
         mapper.step_hook = self.mapper.step_hook
         self.mapper = mapper
+        if getattr(self, "trainer", None) is not None:
+            self.trainer.mapper = mapper
         self.checkpoints.timings = mapper.timings
 
     def warm_up(self) -> float:
@@ -207,12 +214,16 @@ class MapService:
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="h3edge-mapper", daemon=True)
         self._thread.start()
+        if self.trainer is not None:
+            self.trainer.start()
 
     def stop(self, checkpoint: bool = True, timeout: float = 60.0) -> bool:
         """Stop mapping (the frame in progress finishes), write a final checkpoint; False when that
         checkpoint was asked for and failed."""
         self._stop.set()
         self.ingest.wake()
+        if self.trainer is not None:
+            self.trainer.stop(timeout)
         if self._thread is not None:
             self._thread.join(timeout)
         self.checkpoints.join(timeout)
@@ -252,18 +263,9 @@ class MapService:
             self.heartbeat = time.monotonic()
             self._serve_requests()
             item = self.ingest.pop()
-            if item is None:  # no frame waiting: one keyframe iteration, or a short wait
-                trained = False
-                try:
-                    trained = self.mapper.train_between_frames() is not None
-                except Exception as e:  # same policy as a frame: log, count, go on
-                    log.exception("training between frames failed")
-                    self._counts["idle_training_errors"] += 1
-                    self._error("internal_error", f"training between frames: {type(e).__name__}: {e}")
-                if trained:
-                    self._note_iterations()
-                else:
-                    self.ingest.wait(0.05, self._stop)
+            if item is None:  # no frame waiting (the training thread trains meanwhile)
+                self._note_iterations()
+                self.ingest.wait(0.05, self._stop)
             else:
                 try:
                     self._handle(item)
@@ -279,7 +281,9 @@ class MapService:
 
     def _maybe_checkpoint(self) -> None:
         if self.checkpoints.due(self.mapper, self.cfg.checkpoint_interval_s):
-            self.checkpoints.write_async(self.checkpoints.capture(self.mapper))
+            with self.mapper.exclusive():
+                captured = self.checkpoints.capture(self.mapper)
+            self.checkpoints.write_async(captured)
 
     def _note_iterations(self) -> None:
         """Record (time, iterations so far) for the status's training rate."""
@@ -336,7 +340,8 @@ class MapService:
                 time.sleep(0.005)
         self.mapper.timings.add("association", time.perf_counter() - t_assoc)
         frame = Frame(msg.frame_id, msg.timestamp, msg.color, msg.depth, pose, msg.intrinsics)
-        result = self.mapper.process(frame, read_seconds=t_assoc - t0)  # decoding is the frame's reading
+        integrate = self.mapper.integrate if self.trainer is not None else self.mapper.process
+        result = integrate(frame, read_seconds=t_assoc - t0)  # decoding is the frame's reading
         if result.mapped:
             with self._req_lock:
                 self._mapped_poses.append((msg.timestamp_ns, np.asarray(pose, np.float64)))
@@ -358,7 +363,14 @@ class MapService:
             self._save_requests.clear()
             self._load_requests.clear()
         for fut, path in loads:  # first: a copy or save asked after a load sees the loaded map
-            self._load_now(fut, path)
+            with self.mapper.exclusive():  # no training step on the map being replaced
+                self._load_now(fut, path)
+        if views or saves:
+            with self.mapper.exclusive():  # no training step while the map is copied
+                self._copy_for(views, saves)
+
+    def _copy_for(self, views: list[Future], saves: list[tuple[Future, Path | None]]) -> None:
+        """Hand ``views`` a frozen map copy and capture the map for ``saves`` (under the map lock)."""
         if views:
             try:
                 if self.mapper.field is None:

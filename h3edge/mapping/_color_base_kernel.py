@@ -1,0 +1,141 @@
+"""Numba CPU kernels of the fused colour base (see :mod:`h3edge.mapping.color_base`): an
+open-addressed hash table of fine cells (int64 cell keys, linear probing, ``slots`` holding row
+indices, -1 empty), a frame's colours fused into it (``fuse_frame``), the colour read back with
+trilinear weights between cell centres (``sample_cells``), and the table rebuilt at a new size
+(``rebuild_slots``).
+
+Module-level so numba's on-disk cache is reused across processes.
+"""
+
+import math
+
+import numba as nb
+import numpy as np
+
+from h3edge.mapping._trilinear_kernel import corner_weight
+
+_BITS = 21  # as h3edge.mapping.voxels.pack: +-2^20 cells a side
+_OFF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+@nb.njit(inline="always")
+def _key(i, j, k):
+    """Packed key of cell (i, j, k); -1 outside the representable range."""
+    a, b, c = i + _OFF, j + _OFF, k + _OFF
+    if a < 0 or a > _MASK or b < 0 or b > _MASK or c < 0 or c > _MASK:
+        return -1
+    return (np.int64(c) << (2 * _BITS)) | (np.int64(b) << _BITS) | np.int64(a)
+
+
+@nb.njit(inline="always")
+def _home(key, mask):
+    return np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(32)) & mask
+
+
+@nb.njit(inline="always")
+def _find(slots, keys, key, mask):
+    """(row of ``key`` or -1, the slot where it is or would go)."""
+    s = _home(key, mask)
+    while True:
+        row = slots[s]
+        if row < 0:
+            return -1, s
+        if keys[row] == key:
+            return row, s
+        s = (s + 1) & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def rebuild_slots(keys, n, capacity):
+    """A slot table of ``capacity`` (a power of two) holding rows 0..n-1 of ``keys``."""
+    slots = np.full(capacity, -1, np.int32)
+    mask = capacity - 1
+    for row in range(n):
+        _, s = _find(slots, keys, keys[row], mask)
+        slots[s] = row
+    return slots
+
+
+@nb.njit(cache=True, nogil=True)
+def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx, cy, stride, cell, band,
+               max_weight):
+    """Fuse one frame: every ``stride``-th pixel (both axes) with valid depth z puts its colour
+    (uint8 RGB -> [0, 1]) into the cells at z-depths z + k * ``cell``, k = -band..band, along its ray
+    (pixel centre; ``rot``, ``trans``: camera to world), as a running average whose weight grows
+    by one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``;
+    past it they are refused. Returns (rows in use, cells refused)."""
+    h, w = depth.shape
+    mask = len(slots) - 1
+    cap = len(keys)
+    inv = 1.0 / cell
+    refused = 0
+    for v in range(stride // 2, h, stride):
+        yc = (v + 0.5 - cy) / fy
+        for u in range(stride // 2, w, stride):
+            z = depth[v, u]
+            if not (z > 0.0) or not math.isfinite(z):
+                continue
+            xc = (u + 0.5 - cx) / fx
+            r = color[v, u, 0] / 255.0
+            g = color[v, u, 1] / 255.0
+            b = color[v, u, 2] / 255.0
+            for k in range(-band, band + 1):
+                zz = z + k * cell
+                if zz <= 0.0:
+                    continue
+                x, y = xc * zz, yc * zz
+                px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * zz + trans[0]
+                py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * zz + trans[1]
+                pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * zz + trans[2]
+                key = _key(math.floor(px * inv), math.floor(py * inv), math.floor(pz * inv))
+                if key < 0:
+                    continue
+                row, s = _find(slots, keys, key, mask)
+                if row < 0:
+                    if n >= cap:
+                        refused += 1
+                        continue
+                    row = n
+                    n += 1
+                    keys[row] = key
+                    slots[s] = row
+                    weight[row] = 0.0
+                wt = min(weight[row] + 1.0, max_weight)
+                rgb[row, 0] += (r - rgb[row, 0]) / wt
+                rgb[row, 1] += (g - rgb[row, 1]) / wt
+                rgb[row, 2] += (b - rgb[row, 2]) / wt
+                weight[row] = wt
+    return n, refused
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
+    """``out[i]`` = the colour at ``pts[i]`` (world, m), trilinear between the centres of the 8
+    cells around it, renormalised over those that hold a colour; ``known[i]`` False (``out``
+    untouched) where none does."""
+    mask = len(slots) - 1
+    inv = 1.0 / cell
+    for i in nb.prange(len(pts)):
+        qx, qy, qz = pts[i, 0] * inv - 0.5, pts[i, 1] * inv - 0.5, pts[i, 2] * inv - 0.5
+        ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
+        fx, fy, fz = qx - ix, qy - iy, qz - iz
+        r = g = b = ws = 0.0
+        for c in range(8):
+            key = _key(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1))
+            if key < 0:
+                continue
+            row, _ = _find(slots, keys, key, mask)
+            if row < 0 or weight[row] <= 0.0:
+                continue
+            wc = corner_weight(fx, fy, fz, c)
+            r += wc * rgb[row, 0]
+            g += wc * rgb[row, 1]
+            b += wc * rgb[row, 2]
+            ws += wc
+        if ws > 1e-6:
+            out[i, 0], out[i, 1], out[i, 2] = r / ws, g / ws, b / ws
+            known[i] = True
+        else:
+            known[i] = False
