@@ -112,3 +112,22 @@ def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene
     tsdf = evaluate_views(MeshRenderer(fuse_tsdf(seq, cell)[0]), seq.heldout, 1, 4)
     assert scores["base"]["psnr_db"] >= tsdf["psnr_db"] - 1.0, (scores, tsdf)
     assert scores["base"]["psnr_db"] >= scores["none"]["psnr_db"] + 3.0, scores
+
+
+def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.voxels import VoxelConfig
+
+    seq = ReplicaSequence(tiny_scene)
+    st = MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False), voxels=VoxelConfig(min_points=3),
+                     color_base=ColorBaseConfig(cell=0.02))
+    m = Mapper(st)
+    for i in range(3):
+        assert m.integrate(seq[i]).mapped
+    meta, arrays = m.state_dict()
+    r = Mapper.from_state_dict(st, meta, arrays)
+    assert len(r.color_base) == len(m.color_base) > 0 and r.field.color_base is r.color_base
+    f = seq.heldout[0]
+    for a, b in zip(m.render(f.intrinsics, f.pose), r.render(f.intrinsics, f.pose)):
+        assert np.array_equal(a, b)

@@ -23,8 +23,8 @@ checkpoints.
 
 Output: OUT.md (one table per dataset: a row per checkpoint and method) and OUT.json, a plot per
 dataset (OUT_<dataset>.png: PSNR, SSIM and pixels off against time, both methods) and the held-out
-renders at the last frame (OUT_<dataset>_views.jpg: sensor | h3edge | TSDF | h3edge depth error |
-TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
+renders at the last frame of the profile's live run (OUT_<dataset>_views.png: sensor | h3edge |
+TSDF | h3edge depth error | TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
 
     python -m h3edge.bench.anytime [--datasets sim studio real] [--hz 30] [--modes live inline]
         [--variant 'base:color_base.cell=0.01'] [--out research/bench_anytime]
@@ -143,9 +143,11 @@ def warm_up(frames: list, settings) -> None:
 
 
 def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Checkpoint], views: list,
-                  threshold: float, references: dict, mode: str) -> tuple[list[dict], dict, Mapper]:
+                  threshold: float, references: dict, mode: str, picture: tuple | None = None
+                  ) -> tuple[list[dict], dict, Mapper]:
     """h3edge's replay in real time through :func:`~h3edge.apps.offline.map_sequence` (``mode``
-    live or inline, as the module says); rows per checkpoint, a summary, and the mapper at the end."""
+    live or inline, as the module says); rows per checkpoint, a summary, and the mapper at the end.
+    ``picture``: (sequence, path) of the held-out renders beside the TSDF's at the last frame."""
     warm_up(frames, settings)
     mapper = Mapper(settings)
     rows: list[dict] = []
@@ -156,6 +158,8 @@ def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Che
                "training_steps": sum(mapper.iterations.values())}
         if mapper.field is not None:
             row.update(score(mapper, views, threshold, mapper.mesh(), references.get(label)))
+            if label == "last frame" and picture is not None:
+                write_comparison(picture[0], [mapper], MeshRenderer(references[label]), picture[1], threshold)
         rows.append(row)
         log.info("%s %s at %.1f s: %s", mode, label, t, {k: round(v, 3) for k, v in row.items()
                                                           if isinstance(v, float)})
@@ -219,24 +223,23 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     marks = checkpoints(len(frames), args.hz, args.every_s, args.still_s)
     log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), args.hz, len(views),
              [m.label for m in marks])
-    tsdf_rows, tsdf, fusion = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
+    tsdf_rows, tsdf, _ = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
-    runs, mappers = {tsdf_label: tsdf_rows}, {}
+    runs = {tsdf_label: tsdf_rows}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
     runs_h3 = [(f"h3edge {mode}", settings, mode) for mode in args.modes]
     runs_h3 += [(f"h3edge live {label}", st, "live") for label, st in variants.items()]
+    picture = out.parent / f"{out.name}_{name}_views.png"
     for label, st, mode in runs_h3:
+        shown = mode == "live" and st is settings  # the profile's own live run
         rows, summary, mapper = replay_h3edge(frames, st, args.hz, args.queue, marks, views, threshold,
-                                              tsdf["meshes"], mode)
+                                              tsdf["meshes"], mode, (seq, picture) if shown else None)
         if not args.components:
             del summary["components"]
-        runs[label], summaries[label], mappers[label] = rows, summary, mapper
+        runs[label], summaries[label] = rows, summary
     result = {"dataset": name, "title": title, "hz": args.hz, "frames": len(frames), "views": len(views),
               "last_arrival_s": (len(frames) - 1) / args.hz, "runs": runs, "summaries": summaries}
     plot(result, out.parent / f"{out.name}_{name}.png")
-    if mappers:  # the held-out renders now (the map at the end of the replay, standing still included)
-        write_comparison(seq, list(mappers.values())[:1], MeshRenderer(fusion.mesh()),
-                         out.parent / f"{out.name}_{name}_views.jpg", threshold)
     return result
 
 
@@ -258,7 +261,8 @@ def format_result(r: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "real"])
+    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "real"],
+                    help="sim, studio, real, tiny, or a sequence directory")
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--modes", nargs="*", default=["live"], choices=["live", "inline"])
@@ -288,7 +292,8 @@ def main(argv=None) -> int:
             log.warning("real skipped: %s not present", REAL)
             continue
         seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
-        r = bench_dataset(ds, seq, settings, variants, args, titles.get(ds, ds), profile.eval.depth_error_threshold,
+        name = ds if ds in titles else Path(ds).name  # a preset, or a sequence directory
+        r = bench_dataset(name, seq, settings, variants, args, titles.get(ds, ds), profile.eval.depth_error_threshold,
                           out)
         results.append(r)
         print(format_result(r), flush=True)

@@ -59,23 +59,28 @@ def rebuild_slots(keys, n, capacity):
 
 
 @nb.njit(cache=True, nogil=True)
-def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx, cy, stride, cell, band,
+def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx, cy, max_stride, reach, cell, band,
                max_weight):
-    """Fuse one frame: every ``stride``-th pixel (both axes) with valid depth z puts its colour
-    (uint8 RGB -> [0, 1]) into the cells at z-depths z + k * ``cell``, k = -band..band, along its ray
-    (pixel centre; ``rot``, ``trans``: camera to world), as a running average whose weight grows
-    by one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``;
-    past it they are refused. Returns (rows in use, cells refused)."""
+    """Fuse one frame: each pixel with valid depth z whose column and row are multiples of its
+    stride s(z) = clip(floor(``reach`` / z), 1, ``max_stride``) (fused pixels at most reach / f
+    apart on the surface, wherever it is) puts its colour (uint8 RGB -> [0, 1]) into the cells at
+    z-depths z + k * ``cell``, k = -band..band, along its ray (pixel centre; ``rot``, ``trans``:
+    camera to world), as a running average whose weight grows by one an observation up to
+    ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``; past it they are refused.
+    Returns (rows in use, cells refused)."""
     h, w = depth.shape
     mask = len(slots) - 1
     cap = len(keys)
     inv = 1.0 / cell
     refused = 0
-    for v in range(stride // 2, h, stride):
+    for v in range(h):
         yc = (v + 0.5 - cy) / fy
-        for u in range(stride // 2, w, stride):
+        for u in range(w):
             z = depth[v, u]
             if not (z > 0.0) or not math.isfinite(z):
+                continue
+            st = min(max_stride, max(1, int(reach / z)))
+            if u % st or v % st:
                 continue
             xc = (u + 0.5 - cx) / fx
             r = color[v, u, 0] / 255.0
@@ -113,8 +118,9 @@ def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx
 @nb.njit(parallel=True, cache=True, nogil=True)
 def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
     """``out[i]`` = the colour at ``pts[i]`` (world, m), trilinear between the centres of the 8
-    cells around it, renormalised over those that hold a colour; ``known[i]`` False (``out``
-    untouched) where none does."""
+    cells around it, renormalised over those that hold a colour; where none does, the mean of the
+    known cells among the 27 around the cell it lies in (a gap between fused pixels); ``known[i]``
+    False (``out`` untouched) where none of those does either."""
     mask = len(slots) - 1
     inv = 1.0 / cell
     for i in nb.prange(len(pts)):
@@ -134,6 +140,19 @@ def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
             g += wc * rgb[row, 1]
             b += wc * rgb[row, 2]
             ws += wc
+        if ws <= 1e-6:  # none of the 8: the mean of the known cells around the one it lies in
+            jx, jy, jz = math.floor(qx + 0.5), math.floor(qy + 0.5), math.floor(qz + 0.5)
+            for c in range(27):
+                key = _key(jx + c % 3 - 1, jy + (c // 3) % 3 - 1, jz + c // 9 - 1)
+                if key < 0:
+                    continue
+                row, _ = _find(slots, keys, key, mask)
+                if row < 0 or weight[row] <= 0.0:
+                    continue
+                r += rgb[row, 0]
+                g += rgb[row, 1]
+                b += rgb[row, 2]
+                ws += 1.0
         if ws > 1e-6:
             out[i, 0], out[i, 1], out[i, 2] = r / ws, g / ws, b / ws
             known[i] = True

@@ -9,20 +9,21 @@ the neural colour field learns only what the base cannot hold (view-consistent s
 detail, unseen cells).
 
 Cells (``cell`` metres a side) exist only where depth put a surface: each frame's valid pixels
-(every ``stride``-th in both axes, fewer apart where they would skip cells) fuse their colour into
-the cells at their measured depth and ``band`` cells in front of and behind it along their ray
-(the volume the render weights live in),
-in an open-addressed hash table (:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells``
-of them (new cells past it are refused and counted). Colour is read with trilinear weights
-between cell centres, renormalised over the cells that hold one.
+(every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) fuse
+their colour into the cells at their measured depth and ``band`` cells in front of and behind it
+along their ray (the volume the render weights live in), in an open-addressed hash table
+(:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` of them (new cells past it are
+refused and counted). Colour is read with trilinear weights between cell centres, renormalised over
+the cells that hold one (or, in a gap between fused pixels, the mean of the known cells around).
 
 Composition (:func:`compose`): where the base knows a colour b, the field's colour is
 sigmoid(logit(b) + z) with z the colour MLP's logit, i.e. the MLP's output acts as odds
 multiplying the base's: an MLP output of 0.5 renders the base unchanged; elsewhere the MLP's colour
 is used as it is.
 
-Cost: 32 bytes a cell (key, RGB and weight rows at most half the slot table); a 640x480 frame at
-stride 3 with band 1 touches ~100k cells (a few ms in one numba pass).
+Cost: 32 bytes a cell (key, RGB and weight rows at most half the slot table); a 640x480 Kinect
+frame at stride 3 with band 1 touches ~100k cells (5-10 ms in one numba pass on this 2-core
+machine).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_cells
 
 BYTES_PER_CELL = 32  # key 8 + RGB 12 + weight 4 + two slots of 4 (load <= 1/2)
+REACH_CELLS = 2.0  # fused pixels lie at most this many cells apart on the surface (the reads bridge gaps)
 _MIN_ROWS = 1 << 15
 
 
@@ -44,8 +46,8 @@ class ColorBaseConfig:
     # m, side of a fused colour cell (0: no base, the paper's: colour only from the trained field)
     cell: float = 0.0
     band: int = 1  # cells in front of and behind each measured depth along its ray that take its colour
-    # pixel stride (both axes) of the pixels a frame fuses, at most: less where the pixels at the
-    # frame's median depth would be more than a cell apart
+    # pixel stride (both axes) of the pixels a frame fuses, at most: less at depths where the fused
+    # pixels would lie more than 2 cells apart on the surface
     stride: int = 3
     max_cells: int = 4_000_000  # cells at most (BYTES_PER_CELL each); new ones past it are refused
     max_weight: float = 64.0  # observations a cell's running average remembers (lighting drift)
@@ -94,28 +96,17 @@ class ColorBase:
         """Fuse colour uint8 (H, W, 3) at depth float32 (H, W) metres (0 = invalid), camera-to-world
         ``c2w`` (4x4, OpenCV optical), host arrays."""
         c = self.cfg
-        stride = self.stride_for(depth, intr)
-        worst = ((depth.shape[0] + stride - 1) // stride) * ((depth.shape[1] + stride - 1) // stride) \
-            * (2 * c.band + 1)
+        worst = depth.size * (2 * c.band + 1)  # every pixel at stride 1
         if self.n + worst > len(self.keys) and len(self.keys) < c.max_cells:
             self._alloc(min(c.max_cells, max(2 * len(self.keys), self.n + worst)))
         pose = np.asarray(c2w, np.float64)
+        reach = REACH_CELLS * c.cell * min(intr.fx, intr.fy)
         self.n, refused = fuse_frame(self.slots, self.keys, self.rgb, self.weight, self.n,
                                      np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color, np.uint8),
                                      np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
                                      float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
-                                     stride, c.cell, c.band, c.max_weight)
+                                     c.stride, reach, c.cell, c.band, c.max_weight)
         self.refused += refused
-
-    def stride_for(self, depth: np.ndarray, intr: Intrinsics) -> int:
-        """The pixel stride a frame is fused at: ``stride``, less where it would leave cells between
-        the fused pixels at the frame's median depth (a pixel's footprint z / f times the stride
-        stays within a cell)."""
-        valid = depth[::8, ::8]
-        valid = valid[(valid > 0) & np.isfinite(valid)]
-        if len(valid) == 0:
-            return 1
-        return int(np.clip(self.cfg.cell * min(intr.fx, intr.fy) / float(np.median(valid)), 1, self.cfg.stride))
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour (N, 3) float32 in [0, 1] at world points (N, 3) metres and whether the base knows

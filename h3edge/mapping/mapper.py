@@ -12,9 +12,10 @@ with a reason (logged and counted); it never touches the map.
 Training (:meth:`Mapper.train_between_frames`): one optimisation step on ``rays_per_iteration``
 rays drawn evenly from the selected keyframes and the newest integrated frame no step has used yet
 (``idle_training``). The service and the live replay run it back to back on a thread of their own
-(:class:`~h3edge.mapping.background.BackgroundTraining`), apart from integration: a frame waits at
-most for the step in progress (the map lock, :meth:`Mapper.exclusive`, goes to integration first)
-and training never waits for a frame.
+(:class:`~h3edge.mapping.background.BackgroundTraining`), apart from integration: a step holds the
+map lock (:meth:`Mapper.exclusive`, which integration takes first) only to draw its rays and to
+apply its updates, and its forward and backward passes run beside integration, so a frame waits at
+most for one of those and training never waits for a frame.
 
 The paper's protocol (:meth:`Mapper.process`): integrate, then ``iterations`` steps on the frame and
 the keyframes selected for each (``training``), one frame after the other.
@@ -336,8 +337,8 @@ class Mapper:
         """Integrate one frame into the explicit parts of the map, without training: check it,
         allocate voxels and their priors, mark free space and cell votes, fuse its colours into the
         colour base, determine texture patterns (every ``update_interval`` frames), decide keyframe
-        insertion. The frame becomes
-        the newest frame :meth:`train_between_frames` trains on until a step has used it.
+        insertion. The frame becomes the newest frame :meth:`train_between_frames` trains on until
+        a step has used it.
         ``frame``: colour uint8 (H, W, 3), depth float32 (H, W) in metres, pose camera-to-world
         (OpenCV optical), host numpy arrays. ``read_seconds``: the caller's reading / decoding
         time, added to ``read``. Timed as ``integration`` (the call's own work, ``read_seconds``
@@ -415,9 +416,11 @@ class Mapper:
 
     @contextlib.contextmanager
     def exclusive(self):
-        """Hold the map against every other thread (integration, training steps, snapshots and
-        checkpoints take it); a caller here goes before a training step that waits for it, so a
-        step on another thread delays it by at most the step in progress. Re-entrant."""
+        """Hold the map against every other thread (integration, training steps' ray draws and
+        updates, snapshots and checkpoints take it); a caller here goes before a training step that
+        waits for it, so a step on another thread delays it by at most its ray draw or its update.
+        Re-entrant. ``with mapper.exclusive(): view = mapper.view().frozen()`` is a consistent copy
+        while training runs on another thread."""
         with self._turns:
             self._waiting += 1
         self._lock.acquire()
@@ -616,7 +619,9 @@ class Mapper:
         return self.view().renderer()
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with self.timings.time("render"):
+        """Colour uint8 (H, W, 3) and z-depth float32 (H, W) metres (0: nothing) seen from
+        camera-to-world ``c2w`` (OpenCV optical) with ``intr``; holds the map while it renders."""
+        with self.exclusive(), self.timings.time("render"):
             return self.view().render(intr, c2w)
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True
@@ -624,14 +629,18 @@ class Mapper:
         """Marching-cubes mesh of the map, vertex colours from the colour field."""
         if self.field is None or len(self.voxels) == 0:
             return trimesh.Trimesh()
-        with self.timings.time("mesh"):
+        with self.exclusive(), self.timings.time("mesh"):
             return self.view().mesh(resolution, aabb, color)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
         """Everything needed to resume, as a JSON-able ``meta`` dict and named numpy arrays (what a
-        checkpoint holds; call between frames, on the mapper's thread). Each component contributes
-        its own ``state_dict``; hash tables are stored sparsely (:meth:`HashGrid.sparse_state_dict`)."""
+        checkpoint holds; holds the map while it copies). Each component contributes its own
+        ``state_dict``; hash tables are stored sparsely (:meth:`HashGrid.sparse_state_dict`)."""
+        with self.exclusive():
+            return self._state_dict()
+
+    def _state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
         if self.field is None:
             raise RuntimeError("nothing mapped yet")
         meta: dict = {"state_version": STATE_VERSION, "frames_mapped": self.frames_mapped,

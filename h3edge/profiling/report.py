@@ -20,8 +20,8 @@ from pathlib import Path
 
 from h3edge.profiling.timing import LABELS, PAPER_COMPONENTS
 
-ORDER = PAPER_COMPONENTS + ("frame", "ingest", "queue_wait", "association", "frame_delay", "mesh", "render",
-                            "checkpoint")
+ORDER = PAPER_COMPONENTS + ("idle_training", "integration", "integration_wait", "frame", "ingest", "queue_wait",
+                            "association", "frame_delay", "mesh", "render", "checkpoint")
 
 
 def power_mode() -> str:

@@ -27,10 +27,11 @@ import numpy as np
 PAPER_COMPONENTS = ("read", "priors", "texture", "keyframes", "training")
 LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
           "texture": "texture pattern determination", "keyframes": "keyframe policy",
-          "training": "map training", "idle_training": "training between frames", "mesh": "mesh extraction",
+          "training": "map training", "idle_training": "training step (its own thread)", "mesh": "mesh extraction",
           "render": "render at pose",
           "frame": "whole frame", "ingest": "ingest (zenoh callback)", "queue_wait": "queue wait",
-          "integration": "frame integration (no training)", "integration_wait": "integration's wait for the map",
+          "integration": "frame integration (no training)", "color_base": "colour base fusion",
+          "integration_wait": "integration's wait for the map",
           "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write"}
 
 
