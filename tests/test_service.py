@@ -141,9 +141,9 @@ def test_profile_query(served):
     assert live["inference"]["mapping_device"] == "cpu"
     if live["inference"]["decoders"] == "onnx":
         assert "query decoders on CPUExecutionProvider" in report(live)
-    assert {"read", "priors", "keyframes", "training", "frame", "ingest", "queue_wait", "association",
-            "frame_delay"} <= set(p["components"])
-    assert "map training" in p["table"]
+    assert {"read", "priors", "keyframes", "integration", "idle_training", "ingest", "queue_wait", "association",
+            "frame_delay"} <= set(p["components"])  # every frame integrated, training on its own thread
+    assert "frame integration" in p["table"] and "training step" in p["table"]
 
 
 def _frame(seq, i, ts_ns, pose=True):
@@ -210,8 +210,8 @@ def test_kill_and_resume(served, tmp_path):
     doc = load_document(str(state / "test"))
     assert doc["frames"] == info["frames_mapped"] and doc["profile"] == "service-test"
     durations = read_durations(state / "test" / "timings.jsonl")
-    assert {"ingest", "queue_wait", "association", "frame_delay", "training"} <= set(durations)
-    assert len(durations["training"]) == doc["components"]["training"]["count"] > 0
+    assert {"ingest", "queue_wait", "association", "frame_delay", "integration"} <= set(durations)
+    assert len(durations["integration"]) == doc["components"]["integration"]["count"] > 0
     before = json.loads(query(session, KEYS.status))
     svc.kill()  # no chance to write anything more
     time.sleep(0.5)

@@ -155,7 +155,8 @@ def read_durations(path: str | Path) -> dict[str, list[float]]:
 def format_timings(summary: dict[str, dict[str, float]], title: str = "timings", frames: int | None = None) -> str:
     """Markdown table: the paper's components first, then the rest; 'per frame' spreads a
     component that runs on some frames only (texture every 10 frames) over all mapped frames."""
-    order = [c for c in PAPER_COMPONENTS + ("frame", "mesh", "render") if c in summary]
+    per_frame = PAPER_COMPONENTS + ("cell_votes", "free_space", "color_base", "integration", "frame")
+    order = [c for c in PAPER_COMPONENTS + ("integration", "idle_training", "frame", "mesh", "render") if c in summary]
     order += sorted(set(summary) - set(order))
     rows = [
         f"### {title}",
@@ -165,6 +166,6 @@ def format_timings(summary: dict[str, dict[str, float]], title: str = "timings",
     ]
     for c in order:
         s = summary[c]
-        per = f"{1000 * s['total_s'] / frames:.1f}" if frames and c in PAPER_COMPONENTS + ("frame",) else ""
+        per = f"{1000 * s['total_s'] / frames:.1f}" if frames and c in per_frame else ""
         rows.append(f"| {LABELS.get(c, c)} | {s['median_ms']:.1f} | {s['p95_ms']:.1f} | {s['count']} | {per} |")
     return "\n".join(rows)
