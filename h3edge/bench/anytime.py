@@ -189,8 +189,13 @@ COLUMNS = [("checkpoint", lambda r: r["checkpoint"], None), ("method", lambda r:
 
 
 def plot(result: dict, path: Path) -> None:
-    """PSNR, SSIM and pixels off (in front + behind) against replay time, one line per method."""
-    import matplotlib
+    """PSNR, SSIM and pixels off (in front + behind) against replay time, one line per method
+    (matplotlib: the ``bench`` extra; without it the plot is left out with a warning)."""
+    try:
+        import matplotlib
+    except ImportError:
+        log.warning("no plot %s: matplotlib is not installed (pip install 'h3edge[bench]')", path)
+        return
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

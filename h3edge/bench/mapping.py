@@ -24,8 +24,9 @@ rendered, black = no sensor depth).
 
 More h3edge rows in the same run: ``--variant 'LABEL:section.key=value;section.key=value'`` maps
 the same frames with those settings changed; ``--live-hz F [--settle-s S]`` adds a live replay
-(frames arriving at F Hz, the mapper skipping what it cannot keep up with and training on
-keyframes between frames, then S s more), to compare at equal wall time. ``wall [s]`` is each
+(frames arriving at F Hz and integrated as they come, what integration cannot keep up with
+skipped, training on its own thread, then S s more; the service's path, research/decisions.md
+D53-1), to compare at equal wall time; ``bench/anytime`` scores such replays against time. ``wall [s]`` is each
 method's mapping time: the sum of TSDF integrations, h3edge's whole run.
 
     python -m h3edge.bench.mapping [--datasets sim replica real] [--profile x86-cpu] [--out docs/bench_mapping]
