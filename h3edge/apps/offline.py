@@ -68,8 +68,8 @@ def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, strid
     no frame waits). ``settle_s``: after the last frame, keep training that long (the robot
     standing still). ``marks``: (label, replay seconds) at which ``on_mark(label, t, results so far)``
     is called with training paused, the map held (:meth:`Mapper.exclusive`) and the replay clock
-    stopped (an evaluation); a time of
-    ``LAST_FRAME`` calls it when the last frame has been handled. Returns one
+    stopped (an evaluation); a time of ``LAST_FRAME`` calls it when the last frame has been
+    handled. Returns one
     :class:`~h3edge.mapping.mapper.FrameResult` per frame, skipped ones included.
     """
     idx = list(range(0, len(seq), max(1, stride)))[:frames]

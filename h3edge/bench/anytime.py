@@ -89,9 +89,9 @@ def score(renderer, views: list, threshold: float, mesh=None, reference=None) ->
 
 
 def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], views: list, threshold: float,
-                voxel: float) -> tuple[list[dict], dict, TsdfFusion]:
-    """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, the meshes
-    at each checkpoint label, and the fusion at the end."""
+                voxel: float) -> tuple[list[dict], dict]:
+    """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, and a
+    summary with the meshes at each checkpoint label."""
     fusion = TsdfFusion(frames[0].intrinsics, voxel)
     rows, meshes, pending = [], {}, list(marks)
     free_at, k, skipped, times = 0.0, 0, 0, []
@@ -128,7 +128,7 @@ def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], vi
     score_until(float("inf"))
     summary = {"integration_ms_median": 1000 * float(np.median(times)), "frames_integrated": fusion.frames,
                "skipped": skipped}
-    return rows, {"meshes": meshes, **summary}, fusion
+    return rows, {"meshes": meshes, **summary}
 
 
 def warm_up(frames: list, settings) -> None:
@@ -228,7 +228,7 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     marks = checkpoints(len(frames), args.hz, args.every_s, args.still_s)
     log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), args.hz, len(views),
              [m.label for m in marks])
-    tsdf_rows, tsdf, _ = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
+    tsdf_rows, tsdf = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs = {tsdf_label: tsdf_rows}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}

@@ -6,9 +6,8 @@ integrated frame no step has used yet); it holds the map lock only to draw its r
 its updates, and gives way there to integration, snapshots and checkpoints
 (:meth:`Mapper.exclusive`): its forward and backward passes run beside integration, on the other
 core, so a frame waits at most for a step's ray draw or update and training never waits for a
-frame. When there is nothing to
-train on yet (no keyframe), the thread polls every ``idle_s``. A step that raises is logged and
-counted in :attr:`errors`; the loop goes on.
+frame. When there is nothing to train on yet (no keyframe), the thread polls every ``idle_s``. A
+step that raises is logged, counted in :attr:`errors` and handed to ``on_error``; the loop goes on.
 
 Integration and training both call numba's parallel kernels, now from two threads: that needs a
 thread-safe numba threading layer (OpenMP or TBB; numba picks one when it finds it). Numba's own
@@ -20,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from collections.abc import Callable
 
 from h3edge.mapping.mapper import Mapper
 
@@ -32,10 +32,10 @@ class BackgroundTraining:
     map), :meth:`paused` the steps themselves; ``mapper`` is read each step, so assigning another
     mapper (a load) takes effect at once."""
 
-    def __init__(self, mapper: Mapper, idle_s: float = 0.01):
+    def __init__(self, mapper: Mapper, idle_s: float = 0.01, on_error: Callable[[Exception], None] | None = None):
         self.mapper = mapper
         self.idle_s = idle_s
-        self.steps = 0  # steps this thread ran
+        self.on_error = on_error  # called on the training thread with a step's exception
         self.errors = 0  # steps that raised
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -62,10 +62,6 @@ class BackgroundTraining:
             self._thread.join(timeout)
             self._thread = None
 
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
     @contextlib.contextmanager
     def paused(self):
         """No step runs inside this block, not even its forward and backward passes (which
@@ -90,17 +86,17 @@ class BackgroundTraining:
                 self._in_step = True
             try:
                 trained = self.mapper.train_between_frames() is not None
-            except Exception:  # same policy as a frame: log, count, go on
+            except Exception as e:  # same policy as a frame: log, count, go on
                 log.exception("background training step failed")
                 self.errors += 1
                 trained = False
+                if self.on_error is not None:
+                    self.on_error(e)
             finally:
                 with self._turn:
                     self._in_step = False
                     self._turn.notify_all()
-            if trained:
-                self.steps += 1
-            else:
+            if not trained:
                 self._stop.wait(self.idle_s)
 
 

@@ -131,14 +131,12 @@ class ColorBase:
         keys = np.asarray(arrays["keys"], np.int64)
         if len(keys) > self.cfg.max_cells:
             raise ValueError(f"colour base of {len(keys)} cells exceeds color_base.max_cells ({self.cfg.max_cells})")
-        self.n = 0
-        self._alloc(max(min(_MIN_ROWS, self.cfg.max_cells), len(keys)))
         self.n = len(keys)
-        self.keys[:self.n] = keys
-        self.rgb[:self.n] = np.asarray(arrays["rgb"], np.float32).reshape(-1, 3)
-        self.weight[:self.n] = np.asarray(arrays["weight"], np.float32)
+        self.keys = keys
+        self.rgb = np.asarray(arrays["rgb"], np.float32).reshape(-1, 3)
+        self.weight = np.asarray(arrays["weight"], np.float32)
+        self._alloc(max(min(_MIN_ROWS, self.cfg.max_cells), self.n))  # room to grow, the slots rebuilt
         self.refused = int(arrays.get("refused", 0))
-        self.slots = rebuild_slots(self.keys, self.n, len(self.slots))
 
 
 _EPS = 1.0 / 512  # the base's colour is kept inside (eps, 1 - eps) so that its odds stay finite

@@ -130,16 +130,17 @@ class MapService:
                          if inference.decoders == "onnx" else None)
         self.poses = PoseBuffer(cfg.pose_buffer, cfg.pose_max_gap_s, cfg.pose_max_speed)
         self.resumed_from: dict | None = None
+        # training on a thread of its own, apart from integration (the profile's
+        # mapper.train_between_frames); without it each frame trains inline (the paper's iterations)
+        # and the map copies are handed out between those steps
+        self.trainer = (BackgroundTraining(self.mapper, on_error=self._training_error)
+                        if self.settings.mapper.train_between_frames else None)
+        if self.trainer is None:
+            self.mapper.step_hook = self._serve_requests
         if resume:
             resumed, self.resumed_from = self.checkpoints.resume()
             if resumed is not None:
                 self._adopt(resumed)
-        # training on a thread of its own, apart from integration (the profile's
-        # mapper.train_between_frames); without it each frame trains inline (the paper's iterations)
-        # and the map copies are handed out between those steps
-        self.trainer = BackgroundTraining(self.mapper) if self.settings.mapper.train_between_frames else None
-        if self.trainer is None:
-            self.mapper.step_hook = self._serve_requests
         self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
         self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error)
                     if ros is not None else None)
@@ -183,7 +184,7 @@ class MapService:
         mapper.timings = self.mapper.timings
         mapper.step_hook = self.mapper.step_hook
         self.mapper = mapper
-        if getattr(self, "trainer", None) is not None:
+        if self.trainer is not None:
             self.trainer.mapper = mapper
         self.checkpoints.timings = mapper.timings
 
@@ -252,6 +253,9 @@ class MapService:
         """Parse and buffer a pose message (called from the transport's thread; never raises)."""
         self.ingest.submit_pose(data)
 
+    def _training_error(self, e: Exception) -> None:
+        self._error("internal_error", f"training step: {type(e).__name__}: {e}")
+
     def _error(self, code: str, text: str) -> None:
         self.last_error = {"code": code, "message": text, "unix": time.time()}
         log.warning("%s: %s", code, text)
@@ -291,12 +295,13 @@ class MapService:
         self._iteration_log.append((time.monotonic(), it["frame"], it["between_frames"]))
 
     def training_rate(self, window_s: float = 10.0) -> dict:
-        """Optimisation steps per second over the last ``window_s`` and the share of them that ran
-        between frames (on keyframes alone)."""
+        """Optimisation steps per second over the last ``window_s``, the share of them that ran
+        between frames (on the training thread), and the training steps that failed."""
         now = time.monotonic()
         log_ = [e for e in list(self._iteration_log) if now - e[0] <= window_s]
         it = dict(self.mapper.iterations)
-        out = {"iterations": it, "iterations_per_s": 0.0, "between_frames_share": None}
+        out = {"iterations": it, "iterations_per_s": 0.0, "between_frames_share": None,
+               "errors": self.trainer.errors if self.trainer is not None else 0}
         if len(log_) >= 2:
             dt = log_[-1][0] - log_[0][0]
             d_frame, d_idle = log_[-1][1] - log_[0][1], log_[-1][2] - log_[0][2]
