@@ -120,6 +120,8 @@ class ColorBase:
         return torch.from_numpy(out).to(dev), torch.from_numpy(known).to(dev)
 
     def state_dict(self) -> dict[str, np.ndarray]:
+        """The cells in use as host arrays (keys int64 (N,), rgb float32 (N, 3) in [0, 1], weight
+        float32 (N,)) and the refused count; what a checkpoint holds of the base."""
         return {"keys": self.keys[:self.n].copy(), "rgb": self.rgb[:self.n].copy(),
                 "weight": self.weight[:self.n].copy(), "refused": np.asarray(self.refused, np.int64)}
 
