@@ -1,6 +1,6 @@
 """``h3edge`` command line: one entry point, one sub-command per job.
 
-    h3edge sim make OUT [--seed S --frames N --width W --height H --preset default|studio|tiny]
+    h3edge sim make OUT [--seed S --frames N --width W --height H --preset default|studio|loft|tiny]
     h3edge sim sheet SEQUENCE OUT.png [--frames N]
     h3edge eval SEQUENCE [--mesh MESH.ply] [--reference tsdf|MESH.ply|none] [--json OUT.json]
     h3edge map SEQUENCE --out DIR [--profile P --frames N --stride S --device D --no-eval]
@@ -402,8 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="simulated scene").add_subparsers(dest="sim_command", required=True)
     mk = sim.add_parser("make", help="render the procedural room into h3edge's dataset format")
     mk.add_argument("out")
-    mk.add_argument("--preset", choices=["default", "studio", "tiny"], default="default",
-                    help="studio: the second scene (other textures, layout and trajectory)")
+    mk.add_argument("--preset", choices=["default", "studio", "loft", "tiny"], default="default",
+                    help="studio: the second scene (other textures, layout and trajectory); loft: the photographic one")
     mk.add_argument("--seed", type=int)
     mk.add_argument("--frames", type=int)
     mk.add_argument("--width", type=int)
@@ -484,7 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="the whole system on loopback: service, publisher, queries, metrics")
     demo.add_argument("--out", default="out/demo")
-    demo.add_argument("--preset", choices=["default", "studio", "tiny"], default="default")
+    demo.add_argument("--preset", choices=["default", "studio", "loft", "tiny"], default="default")
     demo.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
     demo.add_argument("--rate", type=float, default=2.0, help="frames per second the publisher streams")
     demo.add_argument("--offline", action="store_true", help="map in-process without zenoh (the old demo)")

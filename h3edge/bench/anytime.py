@@ -10,6 +10,12 @@ still). Scores: PSNR, SSIM, Depth L1, the share of valid pixels rendered more th
 of / behind the sensor depth, and the TSDF surface farther than 5 cm from h3edge's mesh (holes),
 against the TSDF's mesh at the same checkpoint.
 
+Datasets (``--datasets``): ``sim`` and ``studio`` (the simulated scenes, trajectories faster than
+a hand-held camera's), ``loft`` (the photographic scene at a hand-held pace), ``replica`` (Replica
+office0's GT mesh ray-cast along every ``--replica-stride``-th real pose, 1200x680, fed at
+hz / stride, the rate those poses were taken at), ``real`` (7-Scenes redkitchen dev), ``tiny``, or
+a sequence directory. The shared data are read in place and skipped when absent.
+
 h3edge modes (``--modes``):
 - ``live``: what the service runs: every frame that arrives is integrated on the replay thread
   (:meth:`Mapper.integrate`) while training runs on a thread of its own
@@ -26,7 +32,7 @@ dataset (OUT_<dataset>.png: PSNR, SSIM and pixels off against time, both methods
 renders at the last frame of the profile's live run (OUT_<dataset>_views.png: sensor | h3edge |
 TSDF | h3edge depth error | TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
 
-    python -m h3edge.bench.anytime [--datasets sim studio real] [--hz 30] [--modes live inline]
+    python -m h3edge.bench.anytime [--datasets sim studio loft replica real] [--hz 30] [--modes live inline]
         [--variant 'base:color_base.cell=0.01'] [--out research/bench_anytime]
 """
 
@@ -41,12 +47,13 @@ from pathlib import Path
 import numpy as np
 
 from h3edge.apps.offline import LAST_FRAME, map_sequence
-from h3edge.bench.mapping import REAL, open_dataset, write_comparison
+from h3edge.bench.mapping import REAL, REPLICA, open_dataset, render_replica, write_comparison
 from h3edge.bench.tables import markdown_table
 from h3edge.config import apply_overrides, load_profile, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.metrics import mesh_to_mesh
 from h3edge.eval.tsdf import TsdfFusion
+from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.mapper import Mapper
 
 log = logging.getLogger("h3edge.bench.anytime")
@@ -220,15 +227,17 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, threshold: float, out: Path) -> dict:
+def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, threshold: float, out: Path,
+                  hz: float) -> dict:
+    """One dataset's replays at ``hz`` (TSDF, then each h3edge run), its plot and its result."""
     frames = [seq[i] for i in range(len(seq) if args.frames is None else min(args.frames, len(seq)))]
     held = getattr(seq, "heldout", None)
     held = [held[i] for i in range(len(held))] if held is not None and len(held) else frames[::10]
     views = pick_views(held, args.views)
-    marks = checkpoints(len(frames), args.hz, args.every_s, args.still_s)
-    log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), args.hz, len(views),
+    marks = checkpoints(len(frames), hz, args.every_s, args.still_s)
+    log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), hz, len(views),
              [m.label for m in marks])
-    tsdf_rows, tsdf = replay_tsdf(frames, args.hz, args.queue, marks, views, threshold, args.tsdf_voxel)
+    tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs = {tsdf_label: tsdf_rows}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
@@ -237,13 +246,13 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     picture = out.parent / f"{out.name}_{name}_views.png"
     for label, st, mode in runs_h3:
         shown = mode == "live" and st is settings  # the profile's own live run
-        rows, summary, mapper = replay_h3edge(frames, st, args.hz, args.queue, marks, views, threshold,
+        rows, summary, mapper = replay_h3edge(frames, st, hz, args.queue, marks, views, threshold,
                                               tsdf["meshes"], mode, (seq, picture) if shown else None)
         if not args.components:
             del summary["components"]
         runs[label], summaries[label] = rows, summary
-    result = {"dataset": name, "title": title, "hz": args.hz, "frames": len(frames), "views": len(views),
-              "last_arrival_s": (len(frames) - 1) / args.hz, "runs": runs, "summaries": summaries}
+    result = {"dataset": name, "title": title, "hz": hz, "frames": len(frames), "views": len(views),
+              "last_arrival_s": (len(frames) - 1) / hz, "runs": runs, "summaries": summaries}
     plot(result, out.parent / f"{out.name}_{name}.png")
     return result
 
@@ -266,14 +275,16 @@ def format_result(r: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "real"],
-                    help="sim, studio, real, tiny, or a sequence directory")
+    ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "loft", "replica", "real"],
+                    help="sim, studio, loft, replica, real, tiny, or a sequence directory")
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--modes", nargs="*", default=["live"], choices=["live", "inline"])
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL:SECTION.KEY=VALUE[;...]",
                     help="one more live h3edge run with these settings changed")
     ap.add_argument("--hz", type=float, default=30.0, help="camera rate the frames arrive at")
+    ap.add_argument("--replica-stride", type=int, default=5,
+                    help="replica: every n-th of the 2000 poses, fed at hz / n (the rate they were taken at)")
     ap.add_argument("--queue", type=int, default=2, help="frames that may wait; older ones are skipped")
     ap.add_argument("--every-s", type=float, default=5.0)
     ap.add_argument("--still-s", type=float, nargs="*", default=[10.0, 30.0])
@@ -290,16 +301,22 @@ def main(argv=None) -> int:
     variants = dict(parse_variant(v, settings) for v in args.variant)
     out = Path(args.out)
     titles = {"sim": "default simulated scene", "studio": "studio simulated scene",
+              "loft": "photographic simulated scene (loft, hand-held pace)",
+              "replica": f"Replica office0 GT mesh along every {args.replica_stride}th real pose (1200x680)",
               "real": "real Kinect v1, 7-Scenes redkitchen dev", "tiny": "tiny simulated scene (160x120)"}
     results = []
     for ds in args.datasets:
-        if ds == "real" and not REAL.is_dir():
-            log.warning("real skipped: %s not present", REAL)
+        if (ds == "real" and not REAL.is_dir()) or (ds == "replica" and not REPLICA.is_dir()):
+            log.warning("%s skipped: %s not present", ds, REAL if ds == "real" else REPLICA)
             continue
-        seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
+        hz, threshold = args.hz, profile.eval.depth_error_threshold
+        if ds == "replica":  # the rendered frames are every n-th of a 30 Hz trajectory
+            seq = ReplicaSequence(render_replica(REPLICA, Path(args.work) / "replica_office0", args.replica_stride))
+            hz = args.hz / args.replica_stride
+        else:
+            seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
         name = ds if ds in titles else Path(ds).name  # a preset, or a sequence directory
-        r = bench_dataset(name, seq, settings, variants, args, titles.get(ds, ds), profile.eval.depth_error_threshold,
-                          out)
+        r = bench_dataset(name, seq, settings, variants, args, titles.get(ds, ds), threshold, out, hz)
         results.append(r)
         print(format_result(r), flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)

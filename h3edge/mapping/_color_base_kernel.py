@@ -29,9 +29,17 @@ def _key(i, j, k):
     return (np.int64(c) << (2 * _BITS)) | (np.int64(b) << _BITS) | np.int64(a)
 
 
+_BLOCK = (3 << (2 * _BITS)) | (3 << _BITS) | 3  # the low 2 bits of each axis: a cell's place in its 4^3 block
+
+
 @nb.njit(inline="always")
 def _home(key, mask):
-    return np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(32)) & mask
+    """The slot a key's probe starts at: its 4^3 block's hash, times 64, plus the cell's place in
+    the block, so that the cells of a block (a surface patch) probe neighbouring slots, a few cache
+    lines, not one random line each."""
+    block = np.uint64(key & ~np.int64(_BLOCK))
+    local = (key & 3) | (((key >> _BITS) & 3) << 2) | (((key >> (2 * _BITS)) & 3) << 4)
+    return ((np.int64((block * _GOLDEN) >> np.uint64(32)) << 6) | local) & mask
 
 
 @nb.njit(inline="always")
@@ -59,14 +67,14 @@ def rebuild_slots(keys, n, capacity):
 
 
 @nb.njit(cache=True, nogil=True)
-def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx, cy, max_stride, reach, cell, band,
+def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, max_stride, reach, cell, band,
                max_weight):
     """Fuse one frame: each pixel with valid depth z whose column and row are multiples of its
     stride s(z) = clip(floor(``reach`` / z), 1, ``max_stride``) (fused pixels at most reach / f
     apart on the surface, wherever it is) puts its colour (uint8 RGB -> [0, 1]) into the cells at
     z-depths z + k * ``cell``, k = -band..band, along its ray (pixel centre; ``rot``, ``trans``:
-    camera to world), as a running average whose weight grows by one an observation up to
-    ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``; past it they are refused.
+    camera to world), as a running average (``cells`` rows: R, G, B, weight) whose weight grows by
+    one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``; past it they are refused.
     Returns (rows in use, cells refused)."""
     h, w = depth.shape
     mask = len(slots) - 1
@@ -106,17 +114,17 @@ def fuse_frame(slots, keys, rgb, weight, n, depth, color, rot, trans, fx, fy, cx
                     n += 1
                     keys[row] = key
                     slots[s] = row
-                    weight[row] = 0.0
-                wt = min(weight[row] + 1.0, max_weight)
-                rgb[row, 0] += (r - rgb[row, 0]) / wt
-                rgb[row, 1] += (g - rgb[row, 1]) / wt
-                rgb[row, 2] += (b - rgb[row, 2]) / wt
-                weight[row] = wt
+                    cells[row, 3] = 0.0
+                wt = min(cells[row, 3] + 1.0, max_weight)
+                cells[row, 0] += (r - cells[row, 0]) / wt
+                cells[row, 1] += (g - cells[row, 1]) / wt
+                cells[row, 2] += (b - cells[row, 2]) / wt
+                cells[row, 3] = wt
     return n, refused
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
+def sample_cells(slots, keys, cells, pts, cell, out, known):
     """``out[i]`` = the colour at ``pts[i]`` (world, m), trilinear between the centres of the 8
     cells around it, renormalised over those that hold a colour; where none does, the mean of the
     known cells among the 27 around the cell it lies in (a gap between fused pixels); ``known[i]``
@@ -133,12 +141,12 @@ def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
             if key < 0:
                 continue
             row, _ = _find(slots, keys, key, mask)
-            if row < 0 or weight[row] <= 0.0:
+            if row < 0 or cells[row, 3] <= 0.0:
                 continue
             wc = corner_weight(fx, fy, fz, c)
-            r += wc * rgb[row, 0]
-            g += wc * rgb[row, 1]
-            b += wc * rgb[row, 2]
+            r += wc * cells[row, 0]
+            g += wc * cells[row, 1]
+            b += wc * cells[row, 2]
             ws += wc
         if ws <= 1e-6:  # none of the 8: the mean of the known cells around the one it lies in
             jx, jy, jz = math.floor(qx + 0.5), math.floor(qy + 0.5), math.floor(qz + 0.5)
@@ -147,11 +155,11 @@ def sample_cells(slots, keys, rgb, weight, pts, cell, out, known):
                 if key < 0:
                     continue
                 row, _ = _find(slots, keys, key, mask)
-                if row < 0 or weight[row] <= 0.0:
+                if row < 0 or cells[row, 3] <= 0.0:
                     continue
-                r += rgb[row, 0]
-                g += rgb[row, 1]
-                b += rgb[row, 2]
+                r += cells[row, 0]
+                g += cells[row, 1]
+                b += cells[row, 2]
                 ws += 1.0
         if ws > 1e-6:
             out[i, 0], out[i, 1], out[i, 2] = r / ws, g / ws, b / ws

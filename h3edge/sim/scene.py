@@ -5,7 +5,8 @@ with weak-textured walls and ceiling, striped surfaces (floor planks, window bli
 splash-back, book spines, a striped bin), photographs and tinted stone textures (posters, a brick
 feature wall, a rug, cardboard boxes) and furniture that occludes (table, bookshelf, cabinet,
 boxes, bin). ``studio`` (a second scene that differs in textures, layout and, with its own
-trajectory, camera path): 7 x 4.5 x 3 m, see :func:`_studio_surfaces`.
+trajectory, camera path): 7 x 4.5 x 3 m, see :func:`_studio_surfaces`. ``loft`` (the photographic
+scene, walked through at a hand-held camera's pace): 5 x 4.2 x 2.7 m, see :func:`_loft_surfaces`.
 ``build_room(seed, layout=...)`` is a pure function of its arguments.
 """
 
@@ -22,6 +23,7 @@ from h3edge.sim import textures as tx
 
 ROOM_SIZE = np.array([6.0, 5.0, 2.8])
 STUDIO_SIZE = np.array([7.0, 4.5, 3.0])
+LOFT_SIZE = np.array([5.0, 4.2, 2.7])
 MIP_LEVELS = 4
 _ALIGN = 1 << (MIP_LEVELS - 1)  # atlas cells start on multiples of this, so mips stay aligned
 _LIGHT = np.array([0.35, 0.55, 0.76]) / np.linalg.norm([0.35, 0.55, 0.76])
@@ -286,6 +288,48 @@ def _studio_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]
     return b.surfaces, b.obstacles
 
 
+def _loft_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
+    """The photographic scene (``LOFT_SIZE``): nearly every surface a scikit-image photograph or
+    photographic texture (CC0) at 2-4 mm a texel, finer than a 1 cm cell: a brick wall, a gravel
+    floor, a grass rug, a wall of photographs, a mosaic of micrographs, a stereo photograph of a
+    motorcycle, printed text, a coin-embossed column, crates in stone; plus plain painted walls
+    and ceiling and one plank table, as a flat has."""
+    b = _Builder(rng)
+    add, box = b.add, b.box
+    W, D, H = LOFT_SIZE
+    b.shell(LOFT_SIZE, {
+        "floor": (0.004, "rich", lambda h, w: tx.tinted(rng, "gravel", h, w, (0.82, 0.78, 0.72), 280)),
+        "ceiling": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (238, 238, 234))),
+        "wall_south": (0.004, "rich", lambda h, w: tx.tinted(rng, "brick", h, w, (1.0, 0.58, 0.45), 240)),
+        "wall_east": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (206, 214, 222))),
+        "wall_north": (0.01, "weak", lambda h, w: tx.weak(rng, h, w, (228, 220, 204))),
+        "wall_west": (0.004, "rich", lambda h, w: tx.tinted(rng, "grass", h, w, (0.55, 0.62, 0.5), 200))})
+    for name, corner, across, down, photo in (  # photographs on the plain walls
+        ("photo_motorcycle", [W - 0.01, 0.5, 2.0], [0, 1.3, 0], [0, 0, -0.88], "motorcycle"),
+        ("photo_astronaut", [W - 0.01, 2.2, 1.9], [0, 0.8, 0], [0, 0, -0.8], "astronaut"),
+        ("photo_coffee", [W - 0.01, 3.2, 1.7], [0, 0.75, 0], [0, 0, -0.5], "coffee"),
+        ("photo_hubble", [3.9, D - 0.01, 2.1], [-1.1, 0, 0], [0, 0, -0.96], "hubble_deep_field"),
+        ("photo_chelsea", [2.4, D - 0.01, 1.8], [-0.75, 0, 0], [0, 0, -0.5], "chelsea"),
+        ("photo_camera", [1.4, D - 0.01, 2.0], [-0.8, 0, 0], [0, 0, -0.8], "camera"),
+    ):
+        add(name, _quad(corner, across, down), 0.0025, "rich", lambda h, w, p=photo: tx.photo(p, h, w))
+    add("mosaic", _quad([3.9, D - 0.01, 0.85], [-2.8, 0, 0], [0, 0, -0.6]), 0.0025, "rich",
+        lambda h, w: tx.photo_tiles(rng, h, w, ["immunohistochemistry", "retina", "colorwheel", "rocket"], 10))
+    add("newspaper", _quad([0.01, 3.4, 1.8], [0, -1.2, 0], [0, 0, -0.7]), 0.002, "rich",
+        lambda h, w: np.ascontiguousarray(tx.tinted(rng, "page", h, w, (1.0, 0.96, 0.88), 300)[:, ::-1]))  # reads
+    add("rug", _quad([1.5, 2.9, 0.008], [2.2, 0, 0], [0, -1.6, 0]), 0.004, "rich",
+        lambda h, w: tx.tinted(rng, "grass", h, w, (0.55, 0.75, 0.45), 220))
+    wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 20))  # noqa: E731
+    box("table_top", [1.9, 1.7, 0.72], [3.1, 2.5, 0.76], 0.003, "stripes", wood)
+    for i, (x, y) in enumerate([(1.95, 1.75), (3.0, 1.75), (1.95, 2.4), (3.0, 2.4)]):
+        box(f"table_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.72], 0.004, "stripes", wood)
+    stone = lambda f: (lambda h, w: tx.tinted(rng, "gravel", h, w, (0.7, 0.66, 0.8), 160))  # noqa: E731
+    box("crate_a", [4.2, 3.3, 0.0], [4.9, 4.1, 0.55], 0.003, "rich", stone)
+    box("crate_b", [0.1, 0.2, 0.0], [0.7, 0.8, 0.7], 0.003, "rich",
+        lambda f: (lambda h, w: tx.tinted(rng, "brick", h, w, (0.8, 0.8, 0.85), 150)))
+    b.cylinder("column", (3.9, 0.9), 0.18, H, 0.003, "rich",
+               lambda h, w: tx.tinted(rng, "coins", h, w, (0.95, 0.85, 0.7), 180))
+    return b.surfaces, b.obstacles
 
 
 def _shade(normal: np.ndarray) -> float:
@@ -293,11 +337,12 @@ def _shade(normal: np.ndarray) -> float:
     return float(0.78 + 0.22 * np.dot(normal, _LIGHT))
 
 
-LAYOUTS = {"room": (ROOM_SIZE, _surfaces), "studio": (STUDIO_SIZE, _studio_surfaces)}
+LAYOUTS = {"room": (ROOM_SIZE, _surfaces), "studio": (STUDIO_SIZE, _studio_surfaces),
+           "loft": (LOFT_SIZE, _loft_surfaces)}
 
 
 def build_room(seed: int, gt_spacing: float = 0.05, layout: str = "room") -> Room:
-    """Build the ``layout`` ("room" or "studio") for ``seed``: mesh, mip-mapped atlas and the
+    """Build the ``layout`` ("room", "studio" or "loft") for ``seed``: mesh, mip-mapped atlas and the
     vertex-coloured GT mesh."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; choose from {sorted(LAYOUTS)}")

@@ -110,10 +110,11 @@ def photo_tiles(rng: np.random.Generator, h: int, w: int, names: list[str], per_
 
 
 def photo(name: str, h: int, w: int) -> np.ndarray:
-    """A scikit-image sample photograph, resized to (H, W); grayscale ones are tinted warm."""
+    """A scikit-image sample photograph, resized to (H, W); grayscale ones are tinted warm
+    (``motorcycle``: the left view of ``stereo_motorcycle``)."""
     from skimage import data as skdata
 
-    img = getattr(skdata, name)()
+    img = skdata.stereo_motorcycle()[0] if name == "motorcycle" else getattr(skdata, name)()
     if img.ndim == 2:
         img = np.stack([img * 1.0, img * 0.9, img * 0.75], axis=-1)
     img = img[..., :3].astype(np.float32)

@@ -58,7 +58,23 @@ STUDIO_KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, flo
     ((1.4, 3.9, 1.6), (6.5, 1.0, 1.0)),  # far view across the studio
     ((0.9, 2.0, 1.4), (6.9, 3.0, 1.2)),
 ]
-KEY_VIEW_SETS = {"room": KEY_VIEWS, "studio": STUDIO_KEY_VIEWS}
+# the "loft" layout (5 x 4.2 x 2.7 m): a hand-held walk round the room from its middle, at a
+# hand-held camera's pace (see h3edge.sim.make's preset), each wall and the floor at 1-2.5 m
+LOFT_KEY_VIEWS: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [
+    ((2.0, 2.6, 1.5), (2.5, 0.0, 1.3)),  # brick wall, far
+    ((2.8, 2.2, 1.4), (3.9, 0.9, 1.2)),  # coin column
+    ((3.4, 1.6, 1.5), (5.0, 1.1, 1.5)),  # motorcycle photograph
+    ((3.6, 2.2, 1.4), (5.0, 2.6, 1.5)),  # astronaut, close
+    ((3.6, 2.8, 1.3), (4.6, 3.7, 0.4)),  # stone crate
+    ((3.2, 3.0, 1.5), (3.3, 4.2, 1.6)),  # hubble photograph
+    ((2.4, 3.0, 1.2), (2.4, 4.2, 0.6)),  # micrograph mosaic, low
+    ((1.8, 3.0, 1.5), (1.0, 4.2, 1.6)),  # camera photograph
+    ((1.3, 2.8, 1.5), (0.0, 2.8, 1.4)),  # newspaper on the moss wall
+    ((1.3, 2.2, 1.6), (0.0, 1.0, 1.0)),  # moss wall and the brick crate
+    ((1.6, 1.6, 1.7), (2.5, 2.1, 0.5)),  # table and rug from above
+    ((1.8, 2.0, 1.6), (2.6, 1.2, 0.0)),  # gravel floor
+]
+KEY_VIEW_SETS = {"room": KEY_VIEWS, "studio": STUDIO_KEY_VIEWS, "loft": LOFT_KEY_VIEWS}
 # degrees a frame the camera may roll about its optical axis on its way to level (the scene's
 # median turn is about 3 degrees a frame; a level camera spun 67 where the gaze nears the zenith)
 MAX_ROLL_STEP_DEG = 8.0
