@@ -69,7 +69,7 @@ def room():
 
 @pytest.fixture(scope="module", params=sorted(LAYOUTS))
 def layout_room(request):
-    """(layout, its room) for both scenes: the default room and the second scene, the studio."""
+    """(layout, its room) for every scene: the default room, the studio and the photographic loft."""
     return request.param, build_room(0, layout=request.param)
 
 
@@ -130,13 +130,17 @@ def test_steady_poses_roll_at_a_bounded_rate():
 
 
 def test_trajectory_sees_the_whole_room(layout_room):
-    """Over the trajectory, nearly all GT surface area is seen by some frame."""
+    """Over the trajectory, nearly all GT surface area is seen by some frame (the loft's hand-held
+    walk at eye level leaves its ceiling out: the rest of it)."""
     from h3edge.eval.cull import visible_vertices
     layout, room = layout_room
     gt = room.gt_mesh
     seen = visible_vertices(gt, camera_path(400, layout), Intrinsics(160, 120, 95.3, 95.3, 80, 60), max_views=100)
     area = gt.area_faces
-    seen_area = area[seen[gt.faces].all(1)].sum() / area.sum()
+    counted = np.ones(len(gt.faces), bool)
+    if layout == "loft":
+        counted = ~(gt.vertices[gt.faces][:, :, 2] > room.bounds[1, 2] - 1e-3).all(1)
+    seen_area = area[seen[gt.faces].all(1) & counted].sum() / area[counted].sum()
     assert seen_area > 0.85
 
 

@@ -2,6 +2,8 @@
 
 Datasets:
 - ``sim``: the default simulated scene (400 frames 640x480, held-out views between them);
+- ``loft``: the photographic simulated scene (scikit-image photographs and textures, 450 frames at
+  a hand-held pace, 45 held out);
 - ``studio``: the second simulated scene (other textures, layout and trajectory; 300 frames, 30
   held out);
 - ``real``: the real Kinect v1 sequence ``../shared/data/7scenes_redkitchen_dev`` (7-Scenes
@@ -199,7 +201,7 @@ def write_comparison(seq, h3: list, tsdf, path: Path, threshold: float = 0.05, v
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "replica", "real"],
-                    choices=["sim", "studio", "replica", "real"])
+                    choices=["sim", "studio", "loft", "replica", "real"])
     ap.add_argument("--profile", default="x86-cpu")
     ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
     ap.add_argument("--replica-stride", type=int, default=5)
@@ -227,6 +229,9 @@ def main(argv=None) -> int:
         elif ds == "studio":
             seq = open_dataset("studio", work)
             title = "second simulated scene, studio (640x480, 300 frames, 30 held out)"
+        elif ds == "loft":
+            seq = open_dataset("loft", work)
+            title = "photographic simulated scene, loft (640x480, 450 frames at a hand-held pace, 45 held out)"
         elif ds == "real":
             if not REAL.is_dir():
                 log.warning("real skipped: %s not present", REAL)

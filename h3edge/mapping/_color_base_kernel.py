@@ -74,8 +74,8 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
     apart on the surface, wherever it is) puts its colour (uint8 RGB -> [0, 1]) into the cells at
     z-depths z + k * ``cell``, k = -band..band, along its ray (pixel centre; ``rot``, ``trans``:
     camera to world), as a running average (``cells`` rows: R, G, B, weight) whose weight grows by
-    one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``; past it they are refused.
-    Returns (rows in use, cells refused)."""
+    one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``;
+    past it they are refused. Returns (rows in use, cells refused)."""
     h, w = depth.shape
     mask = len(slots) - 1
     cap = len(keys)
