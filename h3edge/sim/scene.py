@@ -151,6 +151,15 @@ class _Builder:
             if faces is None or fname in faces:
                 self.add(f"{name}{fname}", q, texel, kind(fname) if callable(kind) else kind, make(fname))
 
+    def table(self, name, lo, hi, texel, make) -> None:
+        """A plank top from ``lo`` to ``hi`` (top texel ``texel``) on four 5 cm legs (4 mm texels)
+        set 5 cm in from its corners, as ``<name>_top`` and ``<name>_leg0..3``."""
+        self.box(f"{name}_top", lo, hi, texel, "stripes", make)
+        x0, y0 = round(lo[0] + 0.05, 6), round(lo[1] + 0.05, 6)
+        x1, y1 = round(hi[0] - 0.1, 6), round(hi[1] - 0.1, 6)
+        for i, (x, y) in enumerate([(x0, y0), (x1, y0), (x0, y1), (x1, y1)]):
+            self.box(f"{name}_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, lo[2]], 0.004, "stripes", make)
+
     def cylinder(self, name, center, radius, height, texel, kind, make) -> None:
         self.obstacles.append(Box(np.array([center[0] - radius, center[1] - radius, 0.0]),
                                   np.array([center[0] + radius, center[1] + radius, height])))
@@ -211,10 +220,7 @@ def _surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
         lambda h, w: tx.tinted(rng, "gravel", h, w, (0.75, 0.55, 0.5), 300))
 
     wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 24))  # noqa: E731
-    # table: top and four legs
-    box("table_top", [2.4, 2.2, 0.72], [3.8, 3.2, 0.76], 0.004, "stripes", wood)
-    for i, (x, y) in enumerate([(2.45, 2.25), (3.7, 2.25), (2.45, 3.1), (3.7, 3.1)]):
-        box(f"table_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.72], 0.004, "stripes", wood)
+    b.table("table", [2.4, 2.2, 0.72], [3.8, 3.2, 0.76], 0.004, wood)
     # bookshelf against the east wall: its front (-x) shows the books
     box("shelf", [5.6, 1.0, 0.0], [5.98, 2.6, 2.0], 0.004, lambda f: "stripes",
         lambda f: (lambda h, w: _shelf_front(rng, h, w)) if f == "-x" else (lambda h, w: tx.planks(rng, h, w, 30)))
@@ -273,9 +279,7 @@ def _studio_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]
     box("sofa_seat", [3.2, 0.2, 0.0], [5.4, 1.0, 0.45], 0.004, "rich", fabric)
     box("sofa_back", [3.2, 0.05, 0.0], [5.4, 0.25, 0.9], 0.004, "rich", fabric, faces=["+y", "+z", "-x", "+x"])
     wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 18))  # noqa: E731
-    box("desk_top", [0.4, 2.6, 0.74], [1.9, 3.4, 0.78], 0.003, "stripes", wood)
-    for i, (x, y) in enumerate([(0.45, 2.65), (1.8, 2.65), (0.45, 3.3), (1.8, 3.3)]):
-        box(f"desk_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.74], 0.004, "stripes", wood)
+    b.table("desk", [0.4, 2.6, 0.74], [1.9, 3.4, 0.78], 0.003, wood)
     crate = lambda f: (lambda h, w: tx.planks(rng, h, w, 22))  # noqa: E731
     box("crate_a", [6.0, 1.6, 0.0], [6.6, 2.2, 0.5], 0.004, "stripes", crate)
     box("crate_b", [6.1, 1.7, 0.5], [6.5, 2.1, 0.85], 0.004, "stripes", crate)
@@ -320,9 +324,7 @@ def _loft_surfaces(rng: np.random.Generator) -> tuple[list[Surface], list[Box]]:
     add("rug", _quad([1.5, 2.9, 0.008], [2.2, 0, 0], [0, -1.6, 0]), 0.004, "rich",
         lambda h, w: tx.tinted(rng, "grass", h, w, (0.55, 0.75, 0.45), 220))
     wood = lambda f: (lambda h, w: tx.planks(rng, h, w, 20))  # noqa: E731
-    box("table_top", [1.9, 1.7, 0.72], [3.1, 2.5, 0.76], 0.003, "stripes", wood)
-    for i, (x, y) in enumerate([(1.95, 1.75), (3.0, 1.75), (1.95, 2.4), (3.0, 2.4)]):
-        box(f"table_leg{i}", [x, y, 0.0], [x + 0.05, y + 0.05, 0.72], 0.004, "stripes", wood)
+    b.table("table", [1.9, 1.7, 0.72], [3.1, 2.5, 0.76], 0.003, wood)
     stone = lambda f: (lambda h, w: tx.tinted(rng, "gravel", h, w, (0.7, 0.66, 0.8), 160))  # noqa: E731
     box("crate_a", [4.2, 3.3, 0.0], [4.9, 4.1, 0.55], 0.003, "rich", stone)
     box("crate_b", [0.1, 0.2, 0.0], [0.7, 0.8, 0.7], 0.003, "rich",
