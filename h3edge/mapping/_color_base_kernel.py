@@ -81,6 +81,10 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
     cap = len(keys)
     inv = 1.0 / cell
     refused = 0
+    # the cell the previous fused pixel's k-th sample fell in: the next pixel's often falls there too
+    # (pixels finer than cells), and its row needs no probe then
+    last_key = np.full(2 * band + 1, -1, np.int64)
+    last_row = np.full(2 * band + 1, -1, np.int64)
     for v in range(h):
         yc = (v + 0.5 - cy) / fy
         for u in range(w):
@@ -105,16 +109,20 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                 key = _key(math.floor(px * inv), math.floor(py * inv), math.floor(pz * inv))
                 if key < 0:
                     continue
-                row, s = _find(slots, keys, key, mask)
-                if row < 0:
-                    if n >= cap:
-                        refused += 1
-                        continue
-                    row = n
-                    n += 1
-                    keys[row] = key
-                    slots[s] = row
-                    cells[row, 3] = 0.0
+                if key == last_key[k + band]:
+                    row = last_row[k + band]
+                else:
+                    row, s = _find(slots, keys, key, mask)
+                    if row < 0:
+                        if n >= cap:
+                            refused += 1
+                            continue
+                        row = n
+                        n += 1
+                        keys[row] = key
+                        slots[s] = row
+                        cells[row, 3] = 0.0
+                    last_key[k + band], last_row[k + band] = key, row
                 wt = min(cells[row, 3] + 1.0, max_weight)
                 cells[row, 0] += (r - cells[row, 0]) / wt
                 cells[row, 1] += (g - cells[row, 1]) / wt
