@@ -65,6 +65,7 @@ def voxel_point_stats(pts, vs, hkeys, counts, sums):
     the +-2^20 voxel range of the packed keys."""
     mask = hkeys.shape[0] - 1
     used = 0
+    last_key, s = np.int64(-1), 0  # the previous point's voxel and slot: neighbouring pixels share voxels
     for i in range(pts.shape[0]):
         x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
@@ -75,14 +76,16 @@ def voxel_point_stats(pts, vs, hkeys, counts, sums):
         if ix < 0 or iy < 0 or iz < 0 or ix > _MASK or iy > _MASK or iz > _MASK:
             return -2
         key = (iz << (2 * _BITS)) | (iy << _BITS) | ix
-        s = slot_of(key, mask)
-        while hkeys[s] != key and hkeys[s] >= 0:
-            s = (s + 1) & mask
-        if hkeys[s] < 0:
-            used += 1
-            if 2 * used > hkeys.shape[0]:
-                return -1
-            hkeys[s] = key
+        if key != last_key:
+            s = slot_of(key, mask)
+            while hkeys[s] != key and hkeys[s] >= 0:
+                s = (s + 1) & mask
+            if hkeys[s] < 0:
+                used += 1
+                if 2 * used > hkeys.shape[0]:
+                    return -1
+                hkeys[s] = key
+            last_key = key
         counts[s] += 1
         sums[s, 0] += x
         sums[s, 1] += y
