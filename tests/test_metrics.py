@@ -142,6 +142,18 @@ def test_mesh_to_mesh_both_directions():
     assert 0.2 < shifted["a_to_b_far_share"] < 0.45  # most of top and bottom are 10 cm off
 
 
+def test_a_large_covered_surface_reads_covered_whatever_the_sample_count():
+    """Distances go to a sampling dense for the threshold, not to ``n`` samples: 50,000 samples of
+    a 12 x 10 m wall lie ~5 cm apart, and measured to those a wall covered by itself would read
+    a few % farther than 5 cm."""
+    wall = trimesh.Trimesh(vertices=[[0, 0, 0], [12, 0, 0], [12, 0, 10], [0, 0, 10]], faces=[[0, 1, 2], [0, 2, 3]])
+    d = mesh_to_mesh(wall, wall.copy(), n=50_000, threshold=0.05)
+    assert d["a_to_b_far_share"] == 0.0 and d["b_to_a_far_share"] == 0.0
+    near = wall.copy()
+    near.apply_translation((0.0, 0.04, 0.0))  # 4 cm in front: covered
+    assert mesh_to_mesh(near, wall, n=50_000, threshold=0.05)["a_to_b_far_share"] == 0.0
+
+
 def test_colour_regions_split_the_valid_pixels():
     """The colour-error regions are disjoint and cover the valid pixels: the band follows the depth
     step, a wrong render off the band is ``depth_off``, texture is where the colour changes."""

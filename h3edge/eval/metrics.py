@@ -110,16 +110,31 @@ def depth_error_map(pred: np.ndarray, gt: np.ndarray, threshold: float = 0.05) -
     return out
 
 
+TARGET_SPACING = 0.2  # of the threshold: the spacing of the samples a distance is measured to
+MAX_TARGET_POINTS = 4_000_000  # cap on those samples (400 m^2 at 1 cm spacing)
+
+
+def _target_samples(mesh: trimesh.Trimesh, n: int, threshold: float, seed: int) -> np.ndarray:
+    """Samples of ``mesh`` to measure distances to: at least ``n``, and dense enough (one per
+    (``TARGET_SPACING`` * threshold)^2 of area, up to ``MAX_TARGET_POINTS``) that the gaps between
+    samples stay far below the threshold; a sparse sampling counts covered surface as far."""
+    spacing = TARGET_SPACING * threshold
+    dense = int(np.ceil(mesh.area / spacing ** 2)) if len(mesh.faces) and spacing > 0 else 0
+    return sample_surface(mesh, max(n, min(dense, MAX_TARGET_POINTS)), seed)
+
+
 def mesh_to_mesh(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 200_000, threshold: float = 0.05,
                  seed: int = 0) -> dict[str, float]:
     """Surface distances between two meshes, both directions (metres): from ``n`` area-uniform
-    samples of each to the other's samples; mean and share farther than ``threshold``.
-    ``a_to_b`` is the accuracy-like direction when ``b`` is the reference."""
+    samples of each to a dense sampling of the other (:func:`_target_samples`: 1 cm apart at a
+    5 cm threshold; ``n`` samples of a 100 m^2 room lie ~2 cm apart at 200,000 and ~4.5 cm at 50,000,
+    which alone made 5 % of a covered surface read as farther than 5 cm); mean and share farther
+    than ``threshold``. ``a_to_b`` is the accuracy-like direction when ``b`` is the reference."""
     pa, pb = sample_surface(a, n, seed), sample_surface(b, n, seed + 1)
     if len(pa) == 0 or len(pb) == 0:
         return {"a_to_b_mean": float("inf"), "b_to_a_mean": float("inf"), "a_to_b_far_share": 1.0,
                 "b_to_a_far_share": 1.0}
-    d_ab, _ = cKDTree(pb).query(pa, workers=-1)
-    d_ba, _ = cKDTree(pa).query(pb, workers=-1)
+    d_ab, _ = cKDTree(_target_samples(b, n, threshold, seed + 3)).query(pa, workers=-1)
+    d_ba, _ = cKDTree(_target_samples(a, n, threshold, seed + 2)).query(pb, workers=-1)
     return {"a_to_b_mean": float(np.mean(d_ab)), "b_to_a_mean": float(np.mean(d_ba)),
             "a_to_b_far_share": float(np.mean(d_ab > threshold)), "b_to_a_far_share": float(np.mean(d_ba > threshold))}
