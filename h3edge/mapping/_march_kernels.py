@@ -1,7 +1,8 @@
 """Fused numba kernels over open-addressed voxel hash tables: the renderer's prior march and the
 allocated-voxel samples of its full-SDF search (see :mod:`h3edge.mapping.raymarch`), the point
 location that training and the prior lookups share (:meth:`h3edge.mapping.voxels.VoxelMap.locate`),
-and the grouping of a frame's points by voxel that allocation starts from.
+the grouping of a frame's points by voxel that allocation starts from, and the cells free space
+marks along a frame's rays.
 
 Module-level so numba's on-disk cache is reused across processes (a closure recompiled, ~10 s,
 in every process: the first render of a service would have paid it).
@@ -55,6 +56,43 @@ def build_table(keys, hkeys, hids):
             s = (s + 1) & mask
         hkeys[s] = keys[i]
         hids[s] = i
+
+@nb.njit(cache=True, nogil=True)
+def ray_cell_keys(rays, reach, rot, trans, voxel_size):
+    """Free space's cells (:mod:`h3edge.mapping.free_space`): keys (as
+    :func:`~h3edge.mapping.voxels.pack`) of the cells at the samples half a voxel apart (z-depths
+    (i + 0.5) * voxel_size / 2 < ``reach[r]``) along each camera ray ``rays[r]`` (z = 1) posed by
+    ``rot``, ``trans`` (camera to world); a sample in the previous sample's cell is left out, and
+    so are cells outside the packable range. Unsorted, with repeats across rays."""
+    step = 0.5 * voxel_size
+    out = np.empty(64, np.int64)
+    n = 0
+    for r in range(len(rays)):
+        last = np.int64(-1)
+        i = 0
+        while True:
+            t = (i + 0.5) * step
+            if not t < reach[r]:
+                break
+            i += 1
+            x, y = rays[r, 0] * t, rays[r, 1] * t
+            a = math.floor((rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * t + trans[0]) / voxel_size) + _OFF
+            b = math.floor((rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * t + trans[1]) / voxel_size) + _OFF
+            c = math.floor((rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * t + trans[2]) / voxel_size) + _OFF
+            if a < 0 or a > _MASK or b < 0 or b > _MASK or c < 0 or c > _MASK:
+                continue
+            key = (np.int64(c) << (2 * _BITS)) | (np.int64(b) << _BITS) | np.int64(a)
+            if key == last:
+                continue
+            last = key
+            if n == len(out):
+                grown = np.empty(2 * n, np.int64)
+                grown[:n] = out
+                out = grown
+            out[n] = key
+            n += 1
+    return out[:n]
+
 
 @nb.njit(cache=True, nogil=True)
 def voxel_point_stats(pts, vs, hkeys, counts, sums):

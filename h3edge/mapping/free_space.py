@@ -20,52 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import math
-
-import numba as nb
-
 from h3edge.geometry.camera import Intrinsics, pixel_rays_camera
+from h3edge.mapping._march_kernels import ray_cell_keys
 from h3edge.mapping.voxels import KeyIndex, pack
-
-_BITS = 21  # as h3edge.mapping.voxels.pack
-_OFF = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
-
-
-@nb.njit(cache=True, nogil=True)
-def _ray_cell_keys(rays, reach, rot, trans, voxel_size):
-    """Keys (as :func:`~h3edge.mapping.voxels.pack`) of the cells at the samples half a voxel apart
-    (z-depths (i + 0.5) * voxel_size / 2 < ``reach[r]``) along each camera ray ``rays[r]`` (z = 1)
-    posed by ``rot``, ``trans`` (camera to world); a sample in the previous sample's cell is left
-    out, and so are cells outside the packable range. Unsorted, with repeats across rays."""
-    step = 0.5 * voxel_size
-    out = np.empty(64, np.int64)
-    n = 0
-    for r in range(len(rays)):
-        last = np.int64(-1)
-        i = 0
-        while True:
-            t = (i + 0.5) * step
-            if not t < reach[r]:
-                break
-            i += 1
-            x, y = rays[r, 0] * t, rays[r, 1] * t
-            a = math.floor((rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * t + trans[0]) / voxel_size) + _OFF
-            b = math.floor((rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * t + trans[1]) / voxel_size) + _OFF
-            c = math.floor((rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * t + trans[2]) / voxel_size) + _OFF
-            if a < 0 or a > _MASK or b < 0 or b > _MASK or c < 0 or c > _MASK:
-                continue
-            key = (np.int64(c) << (2 * _BITS)) | (np.int64(b) << _BITS) | np.int64(a)
-            if key == last:
-                continue
-            last = key
-            if n == len(out):
-                grown = np.empty(2 * n, np.int64)
-                grown[:n] = out
-                out = grown
-            out[n] = key
-            n += 1
-    return out[:n]
 
 
 @dataclass(frozen=True)
@@ -105,7 +62,7 @@ class FreeSpace:
         if len(z) == 0:
             return 0
         pose = np.asarray(pose, np.float64)
-        keys = np.unique(_ray_cell_keys(np.ascontiguousarray(rays), z.astype(np.float64) - self.truncation,
+        keys = np.unique(ray_cell_keys(np.ascontiguousarray(rays), z.astype(np.float64) - self.truncation,
                                         np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
                                         self.voxel_size))
         new = keys[self.cells.find(keys) < 0]
