@@ -28,6 +28,11 @@ def test_free_space_is_only_where_rays_passed():
     capped = FreeSpace(FreeSpaceConfig(stride=8, max_cells=10), 0.1, 0.05)
     capped.mark(depth, intr, np.eye(4))
     assert len(capped) == 10 and capped.refused > 0
+    endless = depth.copy()
+    endless[4::16] = np.inf  # every other sampled row: raw depth with no bound (callers pass cleaned depth): those rays mark nothing
+    inf_marked = FreeSpace(FreeSpaceConfig(stride=8), 0.1, 0.05)
+    inf_marked.mark(endless, intr, np.eye(4))
+    assert 0 < len(inf_marked) <= len(fs) and not inf_marked.contains(behind_or_outside).any()
 
 
 def test_signed_distance_and_slice_on_a_mapped_scene(tiny_scene):

@@ -63,11 +63,14 @@ def ray_cell_keys(rays, reach, rot, trans, voxel_size):
     :func:`~h3edge.mapping.voxels.pack`) of the cells at the samples half a voxel apart (z-depths
     (i + 0.5) * voxel_size / 2 < ``reach[r]``) along each camera ray ``rays[r]`` (z = 1) posed by
     ``rot``, ``trans`` (camera to world); a sample in the previous sample's cell is left out, and
-    so are cells outside the packable range. Unsorted, with repeats across rays."""
+    so are cells outside the packable range; a ray with a non-finite reach marks none. Unsorted, with
+    repeats across rays."""
     step = 0.5 * voxel_size
     out = np.empty(64, np.int64)
     n = 0
     for r in range(len(rays)):
+        if not math.isfinite(reach[r]):  # no bound to march to: the ray marks nothing
+            continue
         last = np.int64(-1)
         i = 0
         while True:
