@@ -29,7 +29,8 @@ def test_free_space_is_only_where_rays_passed():
     capped.mark(depth, intr, np.eye(4))
     assert len(capped) == 10 and capped.refused > 0
     endless = depth.copy()
-    endless[4::16] = np.inf  # every other sampled row: raw depth with no bound (callers pass cleaned depth): those rays mark nothing
+    endless[4::16] = np.inf  # every other sampled row: raw depth with no bound (callers pass cleaned
+    # depth): those rays mark nothing
     inf_marked = FreeSpace(FreeSpaceConfig(stride=8), 0.1, 0.05)
     inf_marked.mark(endless, intr, np.eye(4))
     assert 0 < len(inf_marked) <= len(fs) and not inf_marked.contains(behind_or_outside).any()
