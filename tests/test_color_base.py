@@ -34,6 +34,18 @@ def test_a_frame_colours_the_cells_at_its_depth_and_the_band_around_it_only():
     assert rgb[1] * 255 == pytest.approx(torch.full((3,), 200.0), abs=0.5)
 
 
+def test_a_frame_fuses_the_signed_distance_of_the_cells_around_its_depth():
+    """The wall 2 m ahead along +y: the fused distance reads 0 on it, + in front, - behind, and
+    nothing past the band (5 cm cells: a pixel's footprint here, so that neighbouring cells hold one)."""
+    base = ColorBase(ColorBaseConfig(cell=0.05, band=1, stride=1))
+    base.fuse(halves(40, 200), WALL, INTR, FRONT)
+    on_wall = backproject(WALL, INTR, FRONT)[24, 8]
+    ys = np.array([-0.025, 0.0, 0.025, -0.2])
+    dist, known = base.sample_distance(on_wall[None] + ys[:, None] * np.array([0.0, 1.0, 0.0]))
+    assert known.tolist() == [True, True, True, False]
+    assert dist[:3] == pytest.approx([0.025, 0.0, -0.025], abs=2e-3)
+
+
 def test_colour_is_a_running_average_that_forgets_past_max_weight():
     base = ColorBase(ColorBaseConfig(cell=0.01, stride=1, max_weight=4.0))
     centre = torch.from_numpy(backproject(WALL, INTR, FRONT)[24, 8][None])
@@ -60,6 +72,10 @@ def test_state_round_trip_reads_the_same_colours():
     assert len(again) == len(base)
     for a, b in zip(base.sample(pts), again.sample(pts)):
         assert torch.equal(a, b)
+    assert np.array_equal(base.sample_distance(pts.numpy())[0], again.sample_distance(pts.numpy())[0])
+    old = {k: v for k, v in base.state_dict().items() if k != "distance"}  # a state from before the distances
+    again.load_state_dict(old)
+    assert again.sample(pts)[1].all() and not again.sample_distance(pts.numpy())[1].any()
     again.load_state_dict({})  # a checkpoint without a base: empty
     assert len(again) == 0
 

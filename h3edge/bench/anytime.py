@@ -32,8 +32,12 @@ dataset (OUT_<dataset>.png: PSNR, SSIM and pixels off against time, both methods
 renders at the last frame of the profile's live run (OUT_<dataset>_views.png: sensor | h3edge |
 TSDF | h3edge depth error | TSDF depth error; red = > 5 cm in front, blue = > 5 cm behind).
 
+``--render-variant``: the profile's live map scored again at each checkpoint with other render
+settings (``render.*``: the same map, so the comparison carries no replay noise), a row each.
+
     python -m h3edge.bench.anytime [--datasets sim studio loft replica real] [--hz 30] [--modes live inline]
-        [--variant 'base:color_base.cell=0.01'] [--out research/bench_anytime]
+        [--variant 'base:color_base.cell=0.01'] [--render-variant 'field only:render.base_surface=0']
+        [--out research/bench_anytime]
 """
 
 from __future__ import annotations
@@ -150,19 +154,29 @@ def warm_up(frames: list, settings) -> None:
 
 
 def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Checkpoint], views: list,
-                  threshold: float, references: dict, mode: str, picture: tuple | None = None
-                  ) -> tuple[list[dict], dict, Mapper]:
+                  threshold: float, references: dict, mode: str, picture: tuple | None = None,
+                  renders: dict | None = None) -> tuple[list[dict], dict, Mapper]:
     """h3edge's replay in real time through :func:`~h3edge.apps.offline.map_sequence` (``mode``
     live or inline, as the module says); rows per checkpoint, a summary, and the mapper at the end.
-    ``picture``: (sequence, path) of the held-out renders beside the TSDF's at the last frame."""
+    ``picture``: (sequence, path) of the held-out renders beside the TSDF's at the last frame.
+    ``renders``: label -> :class:`~h3edge.mapping.raymarch.RenderConfig` the same map is also
+    scored with at each checkpoint; their rows go to ``renders_rows[label]`` in the summary."""
     warm_up(frames, settings)
     mapper = Mapper(settings)
     rows: list[dict] = []
+    render_rows: dict[str, list[dict]] = {label: [] for label in renders or {}}
 
     def score_now(label: str, t: float, results: list) -> None:
         skipped = sum(r.reason == "queue_full" for r in results)
         row = {"checkpoint": label, "t_s": t, "frames_integrated": mapper.frames_mapped, "skipped": skipped,
                "training_steps": sum(mapper.iterations.values())}
+        for name, cfg in (renders or {}).items():
+            other = dict(row)
+            if mapper.field is not None:
+                view = mapper.view()
+                view.render_cfg = cfg
+                other.update(score(view, views, threshold, view.mesh(), references.get(label)))
+            render_rows[name].append(other)
         if mapper.field is not None:
             row.update(score(mapper, views, threshold, mapper.mesh(), references.get(label)))
             if label == "last frame" and picture is not None:
@@ -182,7 +196,7 @@ def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Che
                "integration_ms_median": tm.get(key, {}).get("median_ms"),
                "integration_ms_p95": tm.get(key, {}).get("p95_ms"),
                "integration_wait_ms_median": tm.get("integration_wait", {}).get("median_ms"),
-               "training_steps": dict(mapper.iterations), "components": tm}
+               "training_steps": dict(mapper.iterations), "components": tm, "renders_rows": render_rows}
     return rows, summary, mapper
 
 
@@ -228,7 +242,7 @@ def plot(result: dict, path: Path) -> None:
 
 
 def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, threshold: float, out: Path,
-                  hz: float) -> dict:
+                  hz: float, renders: dict | None = None) -> dict:
     """One dataset's replays at ``hz`` (TSDF, then each h3edge run), its plot and its result."""
     frames = [seq[i] for i in range(len(seq) if args.frames is None else min(args.frames, len(seq)))]
     held = getattr(seq, "heldout", None)
@@ -247,10 +261,14 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     for label, st, mode in runs_h3:
         shown = mode == "live" and st is settings  # the profile's own live run
         rows, summary, mapper = replay_h3edge(frames, st, hz, args.queue, marks, views, threshold,
-                                              tsdf["meshes"], mode, (seq, picture) if shown else None)
+                                              tsdf["meshes"], mode, (seq, picture) if shown else None,
+                                              renders if shown else None)
         if not args.components:
             del summary["components"]
         runs[label], summaries[label] = rows, summary
+        for r_label, r_rows in summary.pop("renders_rows").items():  # the same map, rendered otherwise
+            runs[f"{label}, rendered {r_label}"] = r_rows
+            summaries[f"{label}, rendered {r_label}"] = {"mode": mode, "same map as": label}
     result = {"dataset": name, "title": title, "hz": hz, "frames": len(frames), "views": len(views),
               "last_arrival_s": (len(frames) - 1) / hz, "runs": runs, "summaries": summaries}
     plot(result, out.parent / f"{out.name}_{name}.png")
@@ -265,6 +283,9 @@ def format_result(r: dict) -> str:
     lines = [markdown_table(f"{r['title']}, fed at {r['hz']:g} Hz ({r['frames']} frames, {r['views']} held-out views)",
                             COLUMNS, rows), ""]
     for method, s in r["summaries"].items():
+        if "same map as" in s:
+            lines.append(f"- {method}: the map of {s['same map as']}, rendered with other settings")
+            continue
         lines.append(f"- {method}: {s['frames_integrated']} frames integrated, {s['skipped']} skipped, "
                      f"integration median {s['integration_ms_median']:.1f} ms"
                      + (f" (p95 {s['integration_ms_p95']:.1f} ms, waiting for a step: median "
@@ -282,6 +303,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="*", default=["live"], choices=["live", "inline"])
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL:SECTION.KEY=VALUE[;...]",
                     help="one more live h3edge run with these settings changed")
+    ap.add_argument("--render-variant", action="append", default=[], metavar="LABEL:render.KEY=VALUE[;...]",
+                    help="the profile's live map also scored with these render settings at each checkpoint")
     ap.add_argument("--hz", type=float, default=30.0, help="camera rate the frames arrive at")
     ap.add_argument("--replica-stride", type=int, default=5,
                     help="replica: every n-th of the 2000 poses, fed at hz / n (the rate they were taken at)")
@@ -299,6 +322,7 @@ def main(argv=None) -> int:
     profile = load_profile(args.profile)
     settings = apply_overrides(profile.map_settings(), args.set)
     variants = dict(parse_variant(v, settings) for v in args.variant)
+    renders = {label: st.render for label, st in (parse_variant(v, settings) for v in args.render_variant)}
     out = Path(args.out)
     titles = {"sim": "default simulated scene", "studio": "studio simulated scene",
               "loft": "photographic simulated scene (loft, hand-held pace)",
@@ -316,7 +340,7 @@ def main(argv=None) -> int:
         else:
             seq = open_dataset({"sim": "default"}.get(ds, ds), Path(args.work))
         name = ds if ds in titles else Path(ds).name  # a preset, or a sequence directory
-        r = bench_dataset(name, seq, settings, variants, args, titles.get(ds, ds), threshold, out, hz)
+        r = bench_dataset(name, seq, settings, variants, args, titles.get(ds, ds), threshold, out, hz, renders)
         results.append(r)
         print(format_result(r), flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)

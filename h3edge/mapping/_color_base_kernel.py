@@ -73,9 +73,10 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
     stride s(z) = clip(floor(``reach`` / z), 1, ``max_stride``) (fused pixels at most reach / f
     apart on the surface, wherever it is) puts its colour (uint8 RGB -> [0, 1]) into the cells at
     z-depths z + k * ``cell``, k = -band..band, along its ray (pixel centre; ``rot``, ``trans``:
-    camera to world), as a running average (``cells`` rows: R, G, B, weight) whose weight grows by
-    one an observation up to ``max_weight``. New cells take rows from ``n`` up to ``len(keys)``;
-    past it they are refused. Returns (rows in use, cells refused)."""
+    camera to world), and the signed distance of the cell's centre in front of z along the camera's
+    z axis (m, positive in front), as running averages (``cells`` rows: R, G, B, weight, signed
+    distance) whose weight grows by one an observation up to ``max_weight``. New cells take rows
+    from ``n`` up to ``len(keys)``; past it they are refused. Returns (rows in use, cells refused)."""
     h, w = depth.shape
     mask = len(slots) - 1
     cap = len(keys)
@@ -106,7 +107,8 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                 px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * zz + trans[0]
                 py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * zz + trans[1]
                 pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * zz + trans[2]
-                key = _key(math.floor(px * inv), math.floor(py * inv), math.floor(pz * inv))
+                ix, iy, iz = math.floor(px * inv), math.floor(py * inv), math.floor(pz * inv)
+                key = _key(ix, iy, iz)
                 if key < 0:
                     continue
                 if key == last_key[k + band]:
@@ -127,6 +129,10 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                 cells[row, 0] += (r - cells[row, 0]) / wt
                 cells[row, 1] += (g - cells[row, 1]) / wt
                 cells[row, 2] += (b - cells[row, 2]) / wt
+                # the cell centre's z-depth in this camera: (centre - trans) . (camera z axis in world)
+                zc = (((ix + 0.5) * cell - trans[0]) * rot[0, 2] + ((iy + 0.5) * cell - trans[1]) * rot[1, 2]
+                      + ((iz + 0.5) * cell - trans[2]) * rot[2, 2])
+                cells[row, 4] += (z - zc - cells[row, 4]) / wt
                 cells[row, 3] = wt
     return n, refused
 
@@ -174,3 +180,31 @@ def sample_cells(slots, keys, cells, pts, cell, out, known):
             known[i] = True
         else:
             known[i] = False
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def sample_distance(slots, keys, cells, pts, cell, out, known):
+    """``out[i]`` = the fused signed distance (m, positive in front of the surface) at ``pts[i]``
+    (world, m), trilinear between the centres of the 8 cells around it, renormalised over those that
+    hold one; ``known[i]`` where those carry at least half the trilinear weight (``out`` untouched
+    elsewhere). A cell holds one where its weight is > 0 and its distance finite."""
+    mask = len(slots) - 1
+    inv = 1.0 / cell
+    for i in nb.prange(len(pts)):
+        qx, qy, qz = pts[i, 0] * inv - 0.5, pts[i, 1] * inv - 0.5, pts[i, 2] * inv - 0.5
+        ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
+        fx, fy, fz = qx - ix, qy - iy, qz - iz
+        d = ws = 0.0
+        for c in range(8):
+            key = _key(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1))
+            if key < 0:
+                continue
+            row, _ = _find(slots, keys, key, mask)
+            if row < 0 or cells[row, 3] <= 0.0 or not math.isfinite(cells[row, 4]):
+                continue
+            wc = corner_weight(fx, fy, fz, c)
+            d += wc * cells[row, 4]
+            ws += wc
+        known[i] = ws >= 0.5
+        if known[i]:
+            out[i] = d / ws

@@ -146,6 +146,23 @@ class CellVotes:
         out[ok] = self.votes[vox[ok], flat] >= self.cfg.min_votes
         return out
 
+    def seen_free_points(self, voxels: VoxelMap, pts: np.ndarray, vox: np.ndarray) -> np.ndarray:
+        """(N,) bool: :meth:`seen_free` at world points ``pts`` (N, 3) metres located in voxel ids
+        ``vox`` (N,) of ``voxels`` (-1: none)."""
+        out = np.zeros(len(vox), bool)
+        ok = np.flatnonzero((vox >= 0) & (vox < min(len(self.votes), len(voxels))))
+        if not self.enabled or len(ok) == 0:
+            return out
+        frac = pts[ok] / self.voxel_size - unpack(voxels.voxel_keys[vox[ok]])
+        out[ok] = self.seen_free(vox[ok], frac)
+        return out
+
+    def frozen_copy(self) -> CellVotes:
+        """An independent copy of the votes in use (for a read-only map view beside integration)."""
+        out = CellVotes(self.cfg, self.voxel_size, self.behind, self.max_voxels)
+        out.votes = self.votes.copy()
+        return out
+
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
                     near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to ``n`` world points (P, 3), each uniform inside a cell drawn uniformly (with

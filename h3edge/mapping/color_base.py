@@ -37,9 +37,9 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_cells
+from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_cells, sample_distance
 
-BYTES_PER_CELL = 32  # key 8 + RGB 12 + weight 4 + two slots of 4 (load <= 1/2)
+BYTES_PER_CELL = 36  # key 8 + RGB 12 + weight 4 + signed distance 4 + two slots of 4 (load <= 1/2)
 REACH_CELLS = 2.0  # fused pixels lie at most this many cells apart on the surface (the reads bridge gaps)
 _MIN_ROWS = 1 << 15
 
@@ -81,10 +81,10 @@ class ColorBase:
         self._alloc(min(_MIN_ROWS, cfg.max_cells))
 
     def _alloc(self, rows: int) -> None:
-        keys, cells = np.zeros(rows, np.int64), np.zeros((rows, 4), np.float32)
+        keys, cells = np.zeros(rows, np.int64), np.zeros((rows, 5), np.float32)
         if self.n:
             keys[:self.n], cells[:self.n] = self.keys[:self.n], self.cells[:self.n]
-        self.keys, self.cells = keys, cells  # a cell's row: R, G, B in [0, 1], weight
+        self.keys, self.cells = keys, cells  # a cell's row: R, G, B in [0, 1], weight, signed distance (m)
         capacity = 1 << max(1, int(np.ceil(np.log2(2 * rows))))
         self.slots = rebuild_slots(self.keys, self.n, capacity)
 
@@ -122,24 +122,40 @@ class ColorBase:
         dev = points.device
         return torch.from_numpy(out).to(dev), torch.from_numpy(known).to(dev)
 
+    def sample_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fused signed distance (N,) float64 metres (positive in front of the surface, along the
+        viewing rays that fused it) at world points (N, 3) metres, and where the base knows it (N,)
+        bool: within about a cell of a fused surface (``band`` + 1/2 cells). Host arrays."""
+        p = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        out = np.zeros(len(p), np.float64)
+        known = np.zeros(len(p), np.bool_)
+        if self.n and len(p):
+            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
+        return out, known
+
     def state_dict(self) -> dict[str, np.ndarray]:
         """The cells in use as host arrays (keys int64 (N,), rgb float32 (N, 3) in [0, 1], weight
-        float32 (N,)) and the refused count; what a checkpoint holds of the base."""
+        float32 (N,), signed distance float32 (N,) m) and the refused count; what a checkpoint holds
+        of the base."""
         return {"keys": self.keys[:self.n].copy(), "rgb": self.cells[:self.n, :3].copy(),
-                "weight": self.cells[:self.n, 3].copy(), "refused": np.asarray(self.refused, np.int64)}
+                "weight": self.cells[:self.n, 3].copy(), "distance": self.cells[:self.n, 4].copy(),
+                "refused": np.asarray(self.refused, np.int64)}
 
     def load_state_dict(self, arrays: dict[str, np.ndarray]) -> None:
         """Take what :meth:`state_dict` captured (empty ``arrays``: an empty base)."""
         if "keys" not in arrays:
             arrays = {"keys": np.zeros(0, np.int64), "rgb": np.zeros((0, 3), np.float32),
-                      "weight": np.zeros(0, np.float32)}
+                      "weight": np.zeros(0, np.float32), "distance": np.zeros(0, np.float32)}
         keys = np.asarray(arrays["keys"], np.int64)
         if len(keys) > self.cfg.max_cells:
             raise ValueError(f"colour base of {len(keys)} cells exceeds color_base.max_cells ({self.cfg.max_cells})")
         self.n = len(keys)
         self.keys = keys
+        # a state from before the distances: NaN, none known (the colours still are)
+        distance = arrays.get("distance", np.full(self.n, np.nan, np.float32))
         self.cells = np.concatenate([np.asarray(arrays["rgb"], np.float32).reshape(-1, 3),
-                                     np.asarray(arrays["weight"], np.float32).reshape(-1, 1)], axis=1)
+                                     np.asarray(arrays["weight"], np.float32).reshape(-1, 1),
+                                     np.asarray(distance, np.float32).reshape(-1, 1)], axis=1)
         self._alloc(max(min(_MIN_ROWS, self.cfg.max_cells), self.n))  # room to grow, the slots rebuilt
         self.refused = int(arrays.get("refused", 0))
 

@@ -30,6 +30,7 @@ reaching the surface; rays with none of these render as depth 0, colour black.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,16 @@ class RenderConfig:
     # on the real map; a fallback ray through a room ~100-300): ~70 bytes a sample of scratch
     search_chunk: int = 4096
     max_pixels: int = 1280 * 960  # render requests (queries, offline) above this are refused
+    # truncation units: in cells the frames voted free (:mod:`h3edge.mapping.cell_votes`) the SDF a
+    # render or mesh reads is at least this, so a surface the priors or an untrained residual put
+    # where the camera saw through renders as free the moment the votes say so (0: off, the field
+    # as trained)
+    free_floor: float = 0.0
+    # m: a fine window in which the fused base's signed distance (:mod:`h3edge.mapping.color_base`)
+    # crosses zero renders at the base's crossing where the field's own lies farther than this from
+    # it or the field has none there: the surface every integrated frame measured, before training
+    # has placed the field's (0: the field's alone)
+    base_surface: float = 0.0
 
 
 def _march_kernel():
@@ -166,17 +177,36 @@ class PriorLookup:
         return support
 
 
+FloorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def free_floor_fn(votes, voxels, floor: float) -> FloorFn | None:
+    """``f(points (N, 3) m, voxel ids (N,)) -> (N,)`` lower bounds of the SDF (truncation units):
+    ``floor`` in the cells ``votes`` (a :class:`~h3edge.mapping.cell_votes.CellVotes`) hold seen
+    free, -inf elsewhere; None when there are no votes or ``floor`` is 0."""
+    if votes is None or not votes.enabled or floor <= 0:
+        return None
+
+    def floor_at(pts: np.ndarray, vox: np.ndarray) -> np.ndarray:
+        return np.where(votes.seen_free_points(voxels, pts, vox), floor, -np.inf)
+
+    return floor_at
+
+
 @torch.no_grad()
-def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig
-                ) -> tuple[np.ndarray, np.ndarray]:
+def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg: RenderConfig,
+                floor: FloorFn | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Colour (N, 3) float in [0, 1] and z-depth (N,) for rays ``origin + t * dirs``. A ray renders
     at the full SDF's first crossing in front of its prior crossing where the search
     (``cfg.field_step``) finds one, else at the prior crossing. A ray whose window
     gets no rendering weight (the residual moved the surface away from it) marches
     on past that window, up to ``cfg.retries`` times: to the full SDF's first crossing behind the
-    window, else to the next prior crossing. The searches and windows leave no gap along a ray."""
+    window, else to the next prior crossing. The searches and windows leave no gap along a ray.
+    ``floor``: lower bounds of the full SDF (:func:`free_floor_fn`), applied wherever it is read."""
     dev = neural_field.geo_grid.table.device
     n = len(dirs)
+    base = neural_field.color_base if cfg.base_surface > 0 and neural_field.color_base is not None else None
+    snap = {"base": base, "base_surface": cfg.base_surface} if base is not None and len(base) else {}
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
     lookup = PriorLookup(voxels)  # one voxel table and prior copy for every stage of this render
@@ -185,10 +215,11 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
     if cfg.field_step > 0 and len(todo):
         # the field's own first crossing in front of the prior's (the window covers the prior's)
         t_field = field_crossings(neural_field, lookup, origin, dirs[todo], np.full(len(todo), cfg.near),
-                                  _search_end(t_hit[todo], cfg), cfg.field_step, dev, cfg.search_chunk)
+                                  _search_end(t_hit[todo], cfg), cfg.field_step, dev, cfg.search_chunk, floor=floor,
+                                  **snap)
         t_hit[todo] = np.where(t_field > 0, t_field, t_hit[todo])
     for attempt in range(cfg.retries + 1):
-        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color)
+        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color, floor)
         if attempt == cfg.retries or len(missed) == 0:
             break
         t_from = t_hit[missed] + _window_reach(cfg)  # the empty window's last sample
@@ -197,7 +228,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
             # the field's first crossing between the empty window and the next prior crossing's
             t_field = field_crossings(neural_field, lookup, origin, dirs[missed], t_from,
                                       np.where(t_new > 0, _search_end(t_new, cfg), cfg.far), cfg.field_step, dev,
-                                      cfg.search_chunk)
+                                      cfg.search_chunk, floor=floor, **snap)
             t_new = np.where(t_field > 0, t_field, t_new)
         t_hit[missed] = t_new
         todo = missed[t_new > 0]
@@ -210,10 +241,11 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
             # voxels at +0.04-0.08 with the wall a few millimetres behind the face)
             t_hit[empty] = field_crossings(neural_field, lookup, origin, dirs[empty], np.full(len(empty), cfg.near),
                                            np.full(len(empty), cfg.far), cfg.fallback_step, dev, cfg.search_chunk,
-                                           cfg.exit_tolerance)
+                                           cfg.exit_tolerance, floor, **snap)
             found = empty[t_hit[empty] > 0]
             if len(found):
-                missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color)
+                missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color,
+                                     floor)
                 if len(missed):  # a window short of weight (mostly an exit's): the found point is the surface
                     _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color)
     return color, depth
@@ -250,14 +282,18 @@ def _search_end(t_centre: np.ndarray, cfg: RenderConfig) -> np.ndarray:
 
 @torch.no_grad()
 def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, t_lo: np.ndarray,
-                    t_hi: np.ndarray, step: float, dev, chunk: int = 4096, exit_tolerance: float = 0.0) -> np.ndarray:
+                    t_hi: np.ndarray, step: float, dev, chunk: int = 4096, exit_tolerance: float = 0.0,
+                    floor: FloorFn | None = None, base=None, base_surface: float = 0.0) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
     ray between ``t_lo`` and ``t_hi`` (per ray), sampled every ``step`` where the samples lie in
     allocated voxels (only those are evaluated); a crossing lies between two neighbouring samples.
     With ``exit_tolerance`` > 0, a ray that leaves the allocated voxels with the full SDF falling
     and within (0, exit_tolerance] reaches the surface just behind the region's face, as in the
     prior march: at its last sample plus the falling SDF's linear extrapolation to zero, at most one
-    step. ``chunk`` rays are searched at a time."""
+    step. ``chunk`` rays are searched at a time; ``floor``: lower bounds of the SDF (:func:`free_floor_fn`).
+    ``base``: a fused base (:class:`~h3edge.mapping.color_base.ColorBase`) whose first crossing
+    of its signed distance is taken instead where it lies more than ``base_surface`` (m) in front
+    of the field's, or the field has none."""
     out = np.full(len(dirs), -1.0)
     if len(lookup.vv) == 0 or len(dirs) == 0:
         return out
@@ -284,6 +320,8 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         for a in range(0, len(pts), 1 << 18):  # bounded activations
             p = torch.from_numpy(pts[a:a + (1 << 18)].astype(np.float32)).to(dev)
             sdf[a:a + len(p)] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
+        if floor is not None:
+            sdf = np.maximum(sdf, floor(pts, lookup(pts)[1]))
         pair = (ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)  # neighbours
         cross = np.flatnonzero(pair & (sdf[:-1] > 0) & (sdf[1:] <= 0))
         t_event = ts[cross] + (ts[cross + 1] - ts[cross]) * sdf[cross] / (sdf[cross] - sdf[cross + 1])
@@ -298,6 +336,15 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
             t_event = np.concatenate([t_event, ts[j] + reach])[order]
         rays, first = np.unique(ray[cross], return_index=True)
         out[s + rays] = t_event[first]
+        if base is not None:  # the base's first crossing, where it lies in front of the field's
+            dist, known = base.sample_distance(pts)
+            bc = np.flatnonzero(pair & known[:-1] & known[1:] & (dist[:-1] > 0) & (dist[1:] <= 0))
+            if len(bc):
+                t_b = ts[bc] + (ts[bc + 1] - ts[bc]) * dist[bc] / (dist[bc] - dist[bc + 1])
+                rays, first = np.unique(ray[bc], return_index=True)
+                t_f = out[s + rays]
+                ahead = (t_f < 0) | (t_b[first] < t_f - base_surface)
+                out[s + rays[ahead]] = t_b[first][ahead]
     return out
 
 
@@ -312,7 +359,8 @@ def window_crossing(sdf: torch.Tensor, t: torch.Tensor, mask: torch.Tensor) -> t
     return t0 + (t1 - t0) * s0 / torch.where(found, s0 - s1, torch.ones_like(s0)), found
 
 
-def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, dev, depth, color) -> np.ndarray:
+def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, dev, depth, color,
+                floor: FloorFn | None = None) -> np.ndarray:
     """Render ``rays`` around their crossings into ``depth`` / ``color``; returns the rays whose window
     holds no surface (no zero crossing, too little weight)."""
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
@@ -323,9 +371,12 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         d = torch.from_numpy(dirs[idx].astype(np.float32)).to(dev)
         t = torch.from_numpy(t_hit[idx].astype(np.float32)).to(dev)[:, None] + cfg.fine_step * offs[None]
         pts = (o + d[:, None, :] * t[..., None]).reshape(-1, 3)
-        prior, vox = lookup(pts.cpu().numpy())
+        pts_np = pts.cpu().numpy()
+        prior, vox = lookup(pts_np)
         sdf, inside = neural_field.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
                                                      torch.from_numpy(vox >= 0).to(dev)))
+        if floor is not None:
+            sdf = torch.maximum(sdf, torch.from_numpy(floor(pts_np, vox).astype(np.float32)).to(dev))
         sdf, inside = sdf.reshape(t.shape), inside.reshape(t.shape)
         out = composite(sdf, t, None, neural_field.cfg.beta, inside, cfg.min_weight)
         # a window the field crosses zero in holds a surface whatever its weights, and the surface is
@@ -335,6 +386,14 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         crossed &= cfg.window_crossing
         depth_r = torch.where(crossed, t_zero, out.depth)
         hit = out.hit | crossed
+        base = neural_field.color_base
+        if cfg.base_surface > 0 and base is not None and len(base):
+            dist, known = base.sample_distance(pts_np)
+            t_base, on_base = window_crossing(torch.from_numpy(dist.reshape(t.shape)).to(t), t,
+                                              torch.from_numpy(known.reshape(t.shape)).to(dev))
+            snap = on_base & (~hit | ((t_base - depth_r).abs() > cfg.base_surface))
+            depth_r = torch.where(snap, t_base, depth_r)
+            hit = hit | on_base
         surf = o + d[hit] * depth_r[hit, None]
         col = neural_field.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
         hit_np = hit.cpu().numpy()
@@ -347,14 +406,15 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
 class MapRenderer:
     """:class:`~h3edge.eval.evaluate.ViewRenderer` over a field and its voxel map."""
 
-    def __init__(self, neural_field, voxels, cfg: RenderConfig = RenderConfig()):
+    def __init__(self, neural_field, voxels, cfg: RenderConfig = RenderConfig(), votes=None):
         self.field, self.voxels, self.cfg = neural_field, voxels, cfg
+        self.floor = free_floor_fn(votes, voxels, cfg.free_floor)  # votes: the map's CellVotes, if any
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colour uint8 (H, W, 3) and z-depth float32 (H, W) metres, 0 where nothing is mapped."""
         if intr.width * intr.height > self.cfg.max_pixels:
             raise ValueError(f"render of {intr.width}x{intr.height} exceeds the cap of {self.cfg.max_pixels} pixels")
         o, d = pixel_rays_world(intr, np.asarray(c2w, np.float64))
-        color, depth = render_rays(self.field, self.voxels, o, d.reshape(-1, 3), self.cfg)
+        color, depth = render_rays(self.field, self.voxels, o, d.reshape(-1, 3), self.cfg, self.floor)
         rgb = np.clip(color * 255 + 0.5, 0, 255).astype(np.uint8).reshape(intr.height, intr.width, 3)
         return rgb, depth.reshape(intr.height, intr.width)

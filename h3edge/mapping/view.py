@@ -16,11 +16,12 @@ import torch
 import trimesh
 
 from h3edge.geometry.camera import Intrinsics
+from h3edge.mapping.cell_votes import CellVotes
 from h3edge.mapping.field import Field
 from h3edge.mapping.free_space import FreeSpace
 from h3edge.mapping.mesh import extract_mesh
 from h3edge.mapping.onnx_decoders import DecoderRuntime
-from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig
+from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig, free_floor_fn
 from h3edge.mapping.voxels import VoxelMap
 
 
@@ -43,8 +44,9 @@ def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
 class MapView:
     def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, render_cfg: RenderConfig,
                  mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0,
-                 free_space: FreeSpace | None = None):
+                 free_space: FreeSpace | None = None, votes: CellVotes | None = None):
         self.field, self.voxels, self.free_space = field, voxels, free_space
+        self.votes = votes  # the fine free-space votes a render's and mesh's SDF floor reads (render.free_floor)
         self.voxel_size, self.render_cfg = voxel_size, render_cfg
         self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
@@ -58,7 +60,8 @@ class MapView:
             field.color_mlp = decoders.mlp(field.color_mlp)
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.render_cfg, self.mesh_resolution,
                        self.frames_mapped, self.mesh_min_support,
-                       copy.deepcopy(self.free_space) if self.free_space is not None else None)
+                       copy.deepcopy(self.free_space) if self.free_space is not None else None,
+                       self.votes.frozen_copy() if self.votes is not None else None)
 
     @property
     def device(self) -> torch.device:
@@ -76,7 +79,7 @@ class MapView:
         return self.field.color(p, torch.from_numpy(vox).to(self.device)).cpu().numpy()
 
     def renderer(self) -> MapRenderer:
-        return MapRenderer(self.field, self.voxels, self.render_cfg)
+        return MapRenderer(self.field, self.voxels, self.render_cfg, self.votes)
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit)."""
@@ -90,6 +93,7 @@ class MapView:
         a :class:`PriorLookup` of this view's voxels, built here when not given)."""
         prior, vox = (lookup or PriorLookup(self.voxels))(pts)
         out = prior.astype(np.float32)
+        floor = free_floor_fn(self.votes, self.voxels, self.render_cfg.free_floor)
         near = np.flatnonzero((vox >= 0) & (np.abs(prior) < margin))
         if len(near):
             p = torch.from_numpy(pts[near].astype(np.float32)).to(self.device)
@@ -98,6 +102,8 @@ class MapView:
                 torch.ones(len(near), dtype=torch.bool, device=self.device),
             )
             out[near] = self.field.sdf(p, self.voxels, prior=known)[0].cpu().numpy()
+        if floor is not None:
+            out = np.maximum(out, floor(pts, vox)).astype(np.float32)
         return out
 
     def block_meshes(self, blocks: np.ndarray, block_voxels: int, resolution: int | None = None
