@@ -1,6 +1,8 @@
 """The fused colour base (:mod:`h3edge.mapping.color_base`): what a frame fuses where, the running
 average, the trilinear read, the cap, the state, and how the field's colour is composed with it."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -125,9 +127,18 @@ def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene
             assert known.float().mean() > 0.8  # the rest: surfaces rendered past the fused band
             diff = np.abs(rgb[hit][known.numpy()] / 255.0 - base[known].numpy())
             assert np.median(diff) < 0.03, np.median(diff)
+            # rendered at the base's fused surface (render.base_surface): its depth as good as the
+            # untrained field's at least, and near TSDF fusion's
+            view = m.view()
+            view.render_cfg = dataclasses.replace(view.render_cfg, base_surface=0.005)
+            scores["base surface"] = evaluate_views(view, seq.heldout, 1, 4)
     tsdf = evaluate_views(MeshRenderer(fuse_tsdf(seq, cell)[0]), seq.heldout, 1, 4)
     assert scores["base"]["psnr_db"] >= tsdf["psnr_db"] - 1.0, (scores, tsdf)
     assert scores["base"]["psnr_db"] >= scores["none"]["psnr_db"] + 3.0, scores
+    snapped = scores["base surface"]
+    assert snapped["depth_l1_cm"] <= scores["base"]["depth_l1_cm"] + 0.05, scores
+    assert snapped["depth_l1_cm"] <= 1.5 * tsdf["depth_l1_cm"] + 0.5, (snapped, tsdf)
+    assert snapped["psnr_db"] >= scores["base"]["psnr_db"] - 0.1, scores
 
 
 def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):

@@ -183,11 +183,11 @@ def sample_cells(slots, keys, cells, pts, cell, out, known):
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def sample_distance(slots, keys, cells, pts, cell, out, known):
+def sample_distance(slots, keys, cells, pts, cell, min_weight, out, known):
     """``out[i]`` = the fused signed distance (m, positive in front of the surface) at ``pts[i]``
     (world, m), trilinear between the centres of the 8 cells around it, renormalised over those that
     hold one; ``known[i]`` where those carry at least half the trilinear weight (``out`` untouched
-    elsewhere). A cell holds one where its weight is > 0 and its distance finite."""
+    elsewhere). A cell holds one where its weight is at least ``min_weight`` and its distance finite."""
     mask = len(slots) - 1
     inv = 1.0 / cell
     for i in nb.prange(len(pts)):
@@ -200,7 +200,7 @@ def sample_distance(slots, keys, cells, pts, cell, out, known):
             if key < 0:
                 continue
             row, _ = _find(slots, keys, key, mask)
-            if row < 0 or cells[row, 3] <= 0.0 or not math.isfinite(cells[row, 4]):
+            if row < 0 or cells[row, 3] < min_weight or not math.isfinite(cells[row, 4]):
                 continue
             wc = corner_weight(fx, fy, fz, c)
             d += wc * cells[row, 4]

@@ -54,6 +54,9 @@ class ColorBaseConfig:
     stride: int = 3
     max_cells: int = 4_000_000  # cells at most (BYTES_PER_CELL each); new ones past it are refused
     max_weight: float = 64.0  # observations a cell's running average remembers (lighting drift)
+    # observations a cell needs before its fused signed distance is read (one noisy frame's surface
+    # does not make one)
+    distance_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.cell >= 0:
@@ -130,7 +133,8 @@ class ColorBase:
         out = np.zeros(len(p), np.float64)
         known = np.zeros(len(p), np.bool_)
         if self.n and len(p):
-            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
+            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, max(self.cfg.distance_weight, 1e-6),
+                            out, known)
         return out, known
 
     def state_dict(self) -> dict[str, np.ndarray]:

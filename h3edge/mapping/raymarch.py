@@ -178,6 +178,7 @@ class PriorLookup:
 
 
 FloorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+_FREE_DISTANCE = 1e-3  # m: the base's signed distance in cells the floor lifts (seen free: no crossing there)
 
 
 def free_floor_fn(votes, voxels, floor: float) -> FloorFn | None:
@@ -320,8 +321,9 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         for a in range(0, len(pts), 1 << 18):  # bounded activations
             p = torch.from_numpy(pts[a:a + (1 << 18)].astype(np.float32)).to(dev)
             sdf[a:a + len(p)] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
-        if floor is not None:
-            sdf = np.maximum(sdf, floor(pts, lookup(pts)[1]))
+        lift = floor(pts, lookup(pts)[1]) if floor is not None else None
+        if lift is not None:
+            sdf = np.maximum(sdf, lift)
         pair = (ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)  # neighbours
         cross = np.flatnonzero(pair & (sdf[:-1] > 0) & (sdf[1:] <= 0))
         t_event = ts[cross] + (ts[cross + 1] - ts[cross]) * sdf[cross] / (sdf[cross] - sdf[cross + 1])
@@ -338,6 +340,8 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         out[s + rays] = t_event[first]
         if base is not None:  # the base's first crossing, where it lies in front of the field's
             dist, known = base.sample_distance(pts)
+            if lift is not None:  # no surface of the base's either where the frames saw through
+                dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
             bc = np.flatnonzero(pair & known[:-1] & known[1:] & (dist[:-1] > 0) & (dist[1:] <= 0))
             if len(bc):
                 t_b = ts[bc] + (ts[bc + 1] - ts[bc]) * dist[bc] / (dist[bc] - dist[bc + 1])
@@ -375,8 +379,9 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         prior, vox = lookup(pts_np)
         sdf, inside = neural_field.sdf(pts, voxels, prior=(torch.from_numpy(prior.astype(np.float32)).to(dev),
                                                      torch.from_numpy(vox >= 0).to(dev)))
-        if floor is not None:
-            sdf = torch.maximum(sdf, torch.from_numpy(floor(pts_np, vox).astype(np.float32)).to(dev))
+        lift = floor(pts_np, vox) if floor is not None else None
+        if lift is not None:
+            sdf = torch.maximum(sdf, torch.from_numpy(lift.astype(np.float32)).to(dev))
         sdf, inside = sdf.reshape(t.shape), inside.reshape(t.shape)
         out = composite(sdf, t, None, neural_field.cfg.beta, inside, cfg.min_weight)
         # a window the field crosses zero in holds a surface whatever its weights, and the surface is
@@ -389,6 +394,8 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         base = neural_field.color_base
         if cfg.base_surface > 0 and base is not None and len(base):
             dist, known = base.sample_distance(pts_np)
+            if lift is not None:
+                dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
             t_base, on_base = window_crossing(torch.from_numpy(dist.reshape(t.shape)).to(t), t,
                                               torch.from_numpy(known.reshape(t.shape)).to(dev))
             snap = on_base & (~hit | ((t_base - depth_r).abs() > cfg.base_surface))
