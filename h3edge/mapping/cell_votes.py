@@ -157,12 +157,6 @@ class CellVotes:
         out[ok] = self.seen_free(vox[ok], frac)
         return out
 
-    def frozen_copy(self) -> CellVotes:
-        """An independent copy of the votes in use (for a read-only map view beside integration)."""
-        out = CellVotes(self.cfg, self.voxel_size, self.behind, self.max_voxels)
-        out.votes = self.votes.copy()
-        return out
-
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
                     near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to ``n`` world points (P, 3), each uniform inside a cell drawn uniformly (with

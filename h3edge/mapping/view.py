@@ -46,7 +46,10 @@ class MapView:
                  mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0,
                  free_space: FreeSpace | None = None, votes: CellVotes | None = None):
         self.field, self.voxels, self.free_space = field, voxels, free_space
-        self.votes = votes  # the fine free-space votes a render's and mesh's SDF floor reads (render.free_floor)
+        # the fine free-space votes a render's and mesh's SDF floor reads (render.free_floor); a frozen
+        # copy shares the live ones (1 KB a voxel: a copy per query would not fit the memory plan), so a
+        # query may see the cells a frame integrated since voted free, never a torn array (rows only grow)
+        self.votes = votes
         self.voxel_size, self.render_cfg = voxel_size, render_cfg
         self.mesh_resolution, self.mesh_min_support = mesh_resolution, mesh_min_support
         self.frames_mapped = frames_mapped
@@ -61,7 +64,7 @@ class MapView:
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.render_cfg, self.mesh_resolution,
                        self.frames_mapped, self.mesh_min_support,
                        copy.deepcopy(self.free_space) if self.free_space is not None else None,
-                       self.votes.frozen_copy() if self.votes is not None else None)
+                       self.votes)
 
     @property
     def device(self) -> torch.device:

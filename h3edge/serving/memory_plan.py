@@ -36,7 +36,8 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
                              + (ingest_queue + 1) * ENCODED_BYTES_PER_PIXEL)
     # observed free space at its cap (keys, sorted keys, ids), twice: the map and a query's copy
     free = 2 * 24 * settings.free_space.max_cells if settings.free_space.enabled else 0
-    # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy
+    # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy (a
+    # query's map copy shares the map's)
     votes = 2 * settings.voxels.max_voxels * settings.votes.cells_per_side(settings.voxels.voxel_size) ** 3
     # the fused colour base at its cap: the map's and a query's copy, and the checkpoint's rows
     base = settings.color_base.nbytes()
