@@ -84,10 +84,11 @@ class RenderConfig:
     # where the camera saw through renders as free the moment the votes say so (0: off, the field
     # as trained)
     free_floor: float = 0.0
-    # m: a fine window in which the fused base's signed distance (:mod:`h3edge.mapping.color_base`)
-    # crosses zero renders at the base's crossing where the field's own lies farther than this from
-    # it or the field has none there: the surface every integrated frame measured, before training
-    # has placed the field's (0: the field's alone)
+    # m: the full-SDF searches also find the fused base's first zero crossing (its signed distance,
+    # :mod:`h3edge.mapping.color_base`) and take it where it lies more than this in front of the
+    # field's, and a fine window renders at the base's crossing where the field's lies farther than
+    # this from it or the field has none there: the surface every integrated frame measured, before
+    # training has placed the field's (0: the field's alone)
     base_surface: float = 0.0
 
 
