@@ -55,6 +55,26 @@ def _find(slots, keys, key, mask):
         s = (s + 1) & mask
 
 
+@nb.njit(inline="always")
+def _corners(p, inv):
+    """The lattice of cell centres around world point ``p`` (cell = 1 / ``inv`` m): the lower corner
+    cell (ix, iy, iz) and the point's fractions (fx, fy, fz) towards the upper one, for
+    :func:`_corner_row` and ``corner_weight``."""
+    qx, qy, qz = p[0] * inv - 0.5, p[1] * inv - 0.5, p[2] * inv - 0.5
+    ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
+    return ix, iy, iz, qx - ix, qy - iy, qz - iz
+
+
+@nb.njit(inline="always")
+def _corner_row(slots, keys, mask, ix, iy, iz, c):
+    """Row of corner ``c`` (0..7, bits x, y, z) of the cell lattice at (ix, iy, iz); -1 if not held."""
+    key = _key(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1))
+    if key < 0:
+        return -1
+    row, _ = _find(slots, keys, key, mask)
+    return row
+
+
 @nb.njit(cache=True, nogil=True)
 def rebuild_slots(keys, n, capacity):
     """A slot table of ``capacity`` (a power of two) holding rows 0..n-1 of ``keys``."""
@@ -146,15 +166,10 @@ def sample_cells(slots, keys, cells, pts, cell, out, known):
     mask = len(slots) - 1
     inv = 1.0 / cell
     for i in nb.prange(len(pts)):
-        qx, qy, qz = pts[i, 0] * inv - 0.5, pts[i, 1] * inv - 0.5, pts[i, 2] * inv - 0.5
-        ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
-        fx, fy, fz = qx - ix, qy - iy, qz - iz
+        ix, iy, iz, fx, fy, fz = _corners(pts[i], inv)
         r = g = b = ws = 0.0
         for c in range(8):
-            key = _key(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1))
-            if key < 0:
-                continue
-            row, _ = _find(slots, keys, key, mask)
+            row = _corner_row(slots, keys, mask, ix, iy, iz, c)
             if row < 0 or cells[row, 3] <= 0.0:
                 continue
             wc = corner_weight(fx, fy, fz, c)
@@ -163,7 +178,7 @@ def sample_cells(slots, keys, cells, pts, cell, out, known):
             b += wc * cells[row, 2]
             ws += wc
         if ws <= 1e-6:  # none of the 8: the mean of the known cells around the one it lies in
-            jx, jy, jz = math.floor(qx + 0.5), math.floor(qy + 0.5), math.floor(qz + 0.5)
+            jx, jy, jz = ix + int(fx >= 0.5), iy + int(fy >= 0.5), iz + int(fz >= 0.5)  # the cell it lies in
             for c in range(27):
                 key = _key(jx + c % 3 - 1, jy + (c // 3) % 3 - 1, jz + c // 9 - 1)
                 if key < 0:
@@ -183,24 +198,19 @@ def sample_cells(slots, keys, cells, pts, cell, out, known):
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def sample_distance(slots, keys, cells, pts, cell, min_weight, out, known):
+def sample_distance(slots, keys, cells, pts, cell, out, known):
     """``out[i]`` = the fused signed distance (m, positive in front of the surface) at ``pts[i]``
     (world, m), trilinear between the centres of the 8 cells around it, renormalised over those that
     hold one; ``known[i]`` where those carry at least half the trilinear weight (``out`` untouched
-    elsewhere). A cell holds one where its weight is at least ``min_weight`` and its distance finite."""
+    elsewhere). A cell holds one where its weight is > 0 and its distance finite."""
     mask = len(slots) - 1
     inv = 1.0 / cell
     for i in nb.prange(len(pts)):
-        qx, qy, qz = pts[i, 0] * inv - 0.5, pts[i, 1] * inv - 0.5, pts[i, 2] * inv - 0.5
-        ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
-        fx, fy, fz = qx - ix, qy - iy, qz - iz
+        ix, iy, iz, fx, fy, fz = _corners(pts[i], inv)
         d = ws = 0.0
         for c in range(8):
-            key = _key(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1))
-            if key < 0:
-                continue
-            row, _ = _find(slots, keys, key, mask)
-            if row < 0 or cells[row, 3] < min_weight or not math.isfinite(cells[row, 4]):
+            row = _corner_row(slots, keys, mask, ix, iy, iz, c)
+            if row < 0 or cells[row, 3] <= 0.0 or not math.isfinite(cells[row, 4]):
                 continue
             wc = corner_weight(fx, fy, fz, c)
             d += wc * cells[row, 4]

@@ -138,7 +138,7 @@ class ColorBase:
         if self.n and len(p):
             # every fused cell counts: requiring 2, 4 or 8 observations cost the sim scene's last
             # frame 0.2-1.1 dB and gained the real set nothing once seen-free cells are lifted (D53-4)
-            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, 1.0, out, known)
+            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
         return out, known
 
     def state_dict(self) -> dict[str, np.ndarray]:

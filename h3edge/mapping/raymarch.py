@@ -207,8 +207,9 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
     ``floor``: lower bounds of the full SDF (:func:`free_floor_fn`), applied wherever it is read."""
     dev = neural_field.geo_grid.table.device
     n = len(dirs)
-    base = neural_field.color_base if cfg.base_surface > 0 and neural_field.color_base is not None else None
-    snap = {"base": base, "base_surface": cfg.base_surface} if base is not None and len(base) else {}
+    base = neural_field.color_base if cfg.base_surface > 0 else None
+    base = base if base is not None and len(base) else None  # the fused surface the searches and windows read
+    snap = {"base": base, "base_surface": cfg.base_surface} if base is not None else {}
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
     lookup = PriorLookup(voxels)  # one voxel table and prior copy for every stage of this render
@@ -221,7 +222,8 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
                                   **snap)
         t_hit[todo] = np.where(t_field > 0, t_field, t_hit[todo])
     for attempt in range(cfg.retries + 1):
-        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color, floor)
+        missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, todo, cfg, dev, depth, color, floor,
+                             base)
         if attempt == cfg.retries or len(missed) == 0:
             break
         t_from = t_hit[missed] + _window_reach(cfg)  # the empty window's last sample
@@ -247,7 +249,7 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
             found = empty[t_hit[empty] > 0]
             if len(found):
                 missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color,
-                                     floor)
+                                     floor, base)
                 if len(missed):  # a window short of weight (mostly an exit's): the found point is the surface
                     _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color)
     return color, depth
@@ -365,9 +367,10 @@ def window_crossing(sdf: torch.Tensor, t: torch.Tensor, mask: torch.Tensor) -> t
 
 
 def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, dev, depth, color,
-                floor: FloorFn | None = None) -> np.ndarray:
+                floor: FloorFn | None = None, base=None) -> np.ndarray:
     """Render ``rays`` around their crossings into ``depth`` / ``color``; returns the rays whose window
-    holds no surface (no zero crossing, too little weight)."""
+    holds no surface (no zero crossing, too little weight). ``floor``: lower bounds of the SDF;
+    ``base``: the fused base whose crossing a window renders at (``cfg.base_surface``)."""
     offs = torch.arange(cfg.fine_samples, device=dev, dtype=torch.float32) - (cfg.fine_samples - 1) / 2
     o = torch.as_tensor(np.asarray(origin, np.float32), device=dev)
     missed = []
@@ -392,8 +395,7 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         crossed &= cfg.window_crossing
         depth_r = torch.where(crossed, t_zero, out.depth)
         hit = out.hit | crossed
-        base = neural_field.color_base
-        if cfg.base_surface > 0 and base is not None and len(base):
+        if base is not None:
             dist, known = base.sample_distance(pts_np)
             if lift is not None:
                 dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)

@@ -96,7 +96,6 @@ class MapView:
         a :class:`PriorLookup` of this view's voxels, built here when not given)."""
         prior, vox = (lookup or PriorLookup(self.voxels))(pts)
         out = prior.astype(np.float32)
-        floor = free_floor_fn(self.votes, self.voxels, self.render_cfg.free_floor)
         near = np.flatnonzero((vox >= 0) & (np.abs(prior) < margin))
         if len(near):
             p = torch.from_numpy(pts[near].astype(np.float32)).to(self.device)
@@ -105,6 +104,7 @@ class MapView:
                 torch.ones(len(near), dtype=torch.bool, device=self.device),
             )
             out[near] = self.field.sdf(p, self.voxels, prior=known)[0].cpu().numpy()
+        floor = free_floor_fn(self.votes, self.voxels, self.render_cfg.free_floor)
         if floor is not None:
             out = np.maximum(out, floor(pts, vox)).astype(np.float32)
         return out
