@@ -141,6 +141,35 @@ def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene
     assert snapped["psnr_db"] >= scores["base"]["psnr_db"] - 0.1, scores
 
 
+def test_the_base_surface_is_read_only_in_voxels_training_has_not_reached(tiny_scene):
+    """render.base_trained_rays: a voxel with fewer training rays than it renders the base's surface;
+    once every voxel has trained past it, the render is the field's alone, pixel for pixel."""
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.voxels import VoxelConfig
+
+    seq = ReplicaSequence(tiny_scene)
+    m = Mapper(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False),
+                           voxels=VoxelConfig(min_points=3), color_base=ColorBaseConfig(cell=0.02)))
+    for f in seq:
+        assert m.integrate(f).mapped
+    view, f = m.view(), seq.heldout[0]
+
+    def render(**kw):
+        view.render_cfg = dataclasses.replace(view.render_cfg, **kw)
+        return view.render(f.intrinsics, f.pose)
+
+    field = render(base_surface=0.0)
+    everywhere = render(base_surface=0.005, base_trained_rays=float("inf"))
+    assert not np.array_equal(field[1], everywhere[1])  # the base moves some surfaces on this map
+    assert (m.voxels.trained == 0).all()  # no step yet: every voxel below any bound
+    for a, b in zip(render(base_surface=0.005, base_trained_rays=1.0), everywhere):
+        assert np.array_equal(a, b)
+    view.voxels.trained[:] = 1.0  # the view's own copy: every voxel trained on one ray
+    for a, b in zip(render(base_surface=0.005, base_trained_rays=1.0), field):
+        assert np.array_equal(a, b)
+
+
 def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):
     from h3edge.io.replica import ReplicaSequence
     from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
@@ -152,9 +181,12 @@ def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):
     m = Mapper(st)
     for i in range(3):
         assert m.integrate(seq[i]).mapped
+    # a query's frozen copy of the map shares the base (a copy per query would not fit the memory plan)
+    assert m.view().frozen().field.color_base is m.color_base
     meta, arrays = m.state_dict()
     r = Mapper.from_state_dict(st, meta, arrays)
     assert len(r.color_base) == len(m.color_base) > 0 and r.field.color_base is r.color_base
+    assert len(r.color_base.slots) >= 4 * len(r.color_base)  # restored with its slots a quarter full at most
     f = seq.heldout[0]
     for a, b in zip(m.render(f.intrinsics, f.pose), r.render(f.intrinsics, f.pose)):
         assert np.array_equal(a, b)

@@ -51,11 +51,16 @@ def test_training_reduces_losses(tiny_scene):
             return float((out.depth[ok] - eval_rays.depth[ok]).abs().mean()), float(ok.float().mean())
 
     err0, _ = eval_error()
-    hist = []
+    hist, ended = [], np.zeros(len(voxels))
     for it in range(30):
         f = frames[it % 3]
-        hist.append(train_step(fld, voxels, rays_from_frame(f, torch.randint(0, n_pix, (1024,), generator=g)),
-                               opt, cfg, 0.05, g))
+        rays = rays_from_frame(f, torch.randint(0, n_pix, (1024,), generator=g))
+        ok = rays.depth > 0
+        vox = voxels.locate((rays.origins[ok] + rays.dirs[ok] * rays.depth[ok, None]).numpy())[0]
+        ended += np.bincount(vox[vox >= 0], minlength=len(voxels))
+        hist.append(train_step(fld, voxels, rays, opt, cfg, 0.05, g))
+    # each step counts its rays in the voxels their measured surfaces fell in (VoxelMap.trained)
+    assert ended.sum() > 0 and np.array_equal(voxels.trained, ended)
     err1, hit = eval_error()
     first, last = hist[0], np.mean([h["loss"] for h in hist[-5:]])
     assert last < 0.5 * first["loss"]

@@ -268,3 +268,23 @@ def test_seen_behind_survives_state_dict_and_old_states_read_as_seen():
     pts = (unpack(old.voxel_keys) + 0.5) * old.cfg.voxel_size
     share, _ = PriorLookup(old)(pts, old.prior_set.astype(np.float64))
     assert share.max() > 0 and np.allclose(PriorLookup(old).support(pts), share)
+
+
+def test_trained_rays_count_per_voxel_grow_with_the_map_and_survive_state_dict():
+    vm = back_wall_map(0.05)
+    n = len(vm)
+    assert n > 2 and vm.trained.shape == (n,) and (vm.trained == 0).all()
+    vm.count_trained(np.array([0, 0, 1, -1, n + 5]))  # repeats count; none (-1) and unknown ids do not
+    assert vm.trained[0] == 2 and vm.trained[1] == 1 and vm.trained[2:].sum() == 0
+    meta, arrays = vm.state_dict()
+    back = VoxelMap(vm.cfg)
+    back.load_state_dict(meta, arrays)
+    assert np.array_equal(back.trained, vm.trained)
+    frozen = vm.frozen_copy()
+    frozen.trained[:] = 7
+    assert vm.trained[2] == 0  # a query copy's count is its own
+    old = VoxelMap(vm.cfg)
+    old.load_state_dict(meta, {k: v for k, v in arrays.items() if k != "trained"})
+    assert len(old.trained) == n and (old.trained == np.inf).all()  # from before the count: trained
+    vm._insert(np.array([pack(np.array([[900, 900, 900]]))[0]]))
+    assert len(vm.trained) == n + 1 and vm.trained[-1] == 0

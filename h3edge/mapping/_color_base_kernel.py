@@ -91,21 +91,24 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                max_weight):
     """Fuse one frame: each pixel with valid depth z whose column and row are multiples of its
     stride s(z) = clip(floor(``reach`` / z), 1, ``max_stride``) (fused pixels at most reach / f
-    apart on the surface, wherever it is) puts its colour (uint8 RGB -> [0, 1]) into the cells at
-    z-depths z + k * ``cell``, k = -band..band, along its ray (pixel centre; ``rot``, ``trans``:
-    camera to world), and the signed distance of the cell's centre in front of z along the camera's
-    z axis (m, positive in front), as running averages (``cells`` rows: R, G, B, weight, signed
-    distance) whose weight grows by one an observation up to ``max_weight``. New cells take rows
+    apart on the surface, wherever it is) reaches the cells at z-depths z + k * ``cell``,
+    k = -band..band, along its ray (pixel centre; ``rot``, ``trans``: camera to world). Each cell
+    reached takes the colour (uint8 RGB -> [0, 1]) of the pixel its centre projects into and the
+    signed distance of its centre in front of that pixel's depth along the camera's z axis (m,
+    positive in front); where that pixel has no depth or lies across a depth edge (> 2 (band + 1)
+    cells from z), the reaching pixel's colour and depth. Both as running averages (``cells`` rows:
+    R, G, B, weight, signed distance) whose weight grows by one a frame up to ``max_weight`` (a
+    cell the previous pixel's sample reached already is not fused again). New cells take rows
     from ``n`` up to ``len(keys)``; past it they are refused. Returns (rows in use, cells refused)."""
     h, w = depth.shape
     mask = len(slots) - 1
     cap = len(keys)
     inv = 1.0 / cell
+    same_surface = 2.0 * (band + 1) * cell  # m: a projected pixel's depth this near the ray's is its surface
     refused = 0
     # the cell the previous fused pixel's k-th sample fell in: the next pixel's often falls there too
-    # (pixels finer than cells), and its row needs no probe then
+    # (pixels finer than cells), and it has taken its projected pixel's colour already
     last_key = np.full(2 * band + 1, -1, np.int64)
-    last_row = np.full(2 * band + 1, -1, np.int64)
     for v in range(h):
         yc = (v + 0.5 - cy) / fy
         for u in range(w):
@@ -131,28 +134,38 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                 key = _key(ix, iy, iz)
                 if key < 0:
                     continue
-                if key == last_key[k + band]:
-                    row = last_row[k + band]
-                else:
-                    row, s = _find(slots, keys, key, mask)
-                    if row < 0:
-                        if n >= cap:
-                            refused += 1
-                            continue
-                        row = n
-                        n += 1
-                        keys[row] = key
-                        slots[s] = row
-                        cells[row, 3] = 0.0
-                    last_key[k + band], last_row[k + band] = key, row
+                if key == last_key[k + band]:  # the previous pixel's cell: the same projected pixel, fused
+                    continue
+                row, s = _find(slots, keys, key, mask)
+                if row < 0:
+                    if n >= cap:
+                        refused += 1
+                        continue
+                    row = n
+                    n += 1
+                    keys[row] = key
+                    slots[s] = row
+                    cells[row, 3] = 0.0
+                last_key[k + band] = key
+                # the cell centre in this camera, and the pixel it projects into: the cell takes that
+                # pixel's colour and depth (projective, as TSDF fusion), not the colour of the ray
+                # that reached it, which lies up to a cell beside the centre, more at grazing angles
+                ox, oy, oz = (ix + 0.5) * cell - trans[0], (iy + 0.5) * cell - trans[1], (iz + 0.5) * cell - trans[2]
+                zc = ox * rot[0, 2] + oy * rot[1, 2] + oz * rot[2, 2]
+                cr, cg, cb, cz = r, g, b, z
+                if zc > 0.0:
+                    pu = math.floor(fx * (ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]) / zc + cx)
+                    pv = math.floor(fy * (ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]) / zc + cy)
+                    if 0 <= pu < w and 0 <= pv < h:
+                        zp = depth[pv, pu]
+                        if zp > 0.0 and abs(zp - z) <= same_surface:  # not across a depth edge
+                            cr, cg, cb, cz = color[pv, pu, 0] / 255.0, color[pv, pu, 1] / 255.0, \
+                                color[pv, pu, 2] / 255.0, zp
                 wt = min(cells[row, 3] + 1.0, max_weight)
-                cells[row, 0] += (r - cells[row, 0]) / wt
-                cells[row, 1] += (g - cells[row, 1]) / wt
-                cells[row, 2] += (b - cells[row, 2]) / wt
-                # the cell centre's z-depth in this camera: (centre - trans) . (camera z axis in world)
-                zc = (((ix + 0.5) * cell - trans[0]) * rot[0, 2] + ((iy + 0.5) * cell - trans[1]) * rot[1, 2]
-                      + ((iz + 0.5) * cell - trans[2]) * rot[2, 2])
-                cells[row, 4] += (z - zc - cells[row, 4]) / wt
+                cells[row, 0] += (cr - cells[row, 0]) / wt
+                cells[row, 1] += (cg - cells[row, 1]) / wt
+                cells[row, 2] += (cb - cells[row, 2]) / wt
+                cells[row, 4] += (cz - zc - cells[row, 4]) / wt
                 cells[row, 3] = wt
     return n, refused
 

@@ -27,7 +27,7 @@ sigmoid(logit(b) + z) with z the colour MLP's logit, i.e. the MLP's output acts 
 multiplying the base's: an MLP output of 0.5 renders the base unchanged; elsewhere the MLP's colour
 is used as it is.
 
-Cost: 36 bytes a cell (a key, one RGB + weight + distance row, and the slot table at most half full); a
+Cost: 44 bytes a cell (a key, one RGB + weight + distance row, and the slot table at most a quarter full); a
 640x480 frame at stride 3 with band 1 touches ~100k cells (5-10 ms in one numba pass on this
 2-core machine). The pass is bound by memory latency, so the layout keeps a cell's lookup to few
 cache lines: a probe starts where its 4^3 block's cells sit side by side in the slot table, and a
@@ -45,7 +45,12 @@ import torch
 from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_cells, sample_distance
 
-BYTES_PER_CELL = 36  # key 8 + RGB 12 + weight 4 + signed distance 4 + two slots of 4 (load <= 1/2)
+# slots per row, at least: the slot table at most a quarter full. Most reads miss (a render's search
+# samples in front of the surface), and a miss walks the run of occupied slots from its home, which
+# the 4^3 blocks' neighbouring homes make long at half load: a restored real map (878k cells), 1M
+# points read at load 0.42 / 0.21 / 0.10: 2.52 / 0.53 / 0.35 s, its render 48 -> 22 s at 0.10
+_SLOTS_PER_ROW = 4
+BYTES_PER_CELL = 28 + 4 * _SLOTS_PER_ROW  # key 8 + RGB 12 + weight 4 + signed distance 4, and the slots
 REACH_CELLS = 2.0  # fused pixels lie at most this many cells apart on the surface (the reads bridge gaps)
 _MIN_ROWS = 1 << 15
 
@@ -91,7 +96,7 @@ class ColorBase:
         if self.n:
             keys[:self.n], cells[:self.n] = self.keys[:self.n], self.cells[:self.n]
         self.keys, self.cells = keys, cells  # a cell's row: R, G, B in [0, 1], weight, signed distance (m)
-        capacity = 1 << max(1, int(np.ceil(np.log2(2 * rows))))
+        capacity = 1 << max(1, int(np.ceil(np.log2(_SLOTS_PER_ROW * rows))))
         self.slots = rebuild_slots(self.keys, self.n, capacity)
 
     def __len__(self) -> int:

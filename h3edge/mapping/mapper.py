@@ -760,7 +760,8 @@ class Mapper:
             "memory_bytes": {
                 "keyframes": kf_bytes,
                 "hash_grids_with_adam": grids,
-                "priors": len(self.voxels.vertex_keys) * 4 * 4,  # prior, its Adam moments, seen_behind
+                # prior, its Adam moments, seen_behind; trained rays per voxel
+                "priors": len(self.voxels.vertex_keys) * 4 * 4 + self.voxels.trained.nbytes,
                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                 "texture_patterns": self.patterns.nbytes,
                 "free_space": self.free_space.nbytes,

@@ -90,6 +90,10 @@ class RenderConfig:
     # this from it or the field has none there: the surface every integrated frame measured, before
     # training has placed the field's (0: the field's alone)
     base_surface: float = 0.0
+    # training rays: the base's surface is read only in allocated voxels where fewer training rays
+    # than this have ended (``VoxelMap.trained``); past it the trained field's surface stands (inf:
+    # in every voxel)
+    base_trained_rays: float = float("inf")
 
 
 def _march_kernel():
@@ -133,6 +137,7 @@ class PriorLookup:
         self.vv = voxels.voxel_vertices
         self.priors = voxels.priors.detach().cpu().numpy().astype(np.float64)
         self.prior_set, self.seen_behind = voxels.prior_set, voxels.seen_behind
+        self.trained = voxels.trained
         self.observed_behind = voxels.cfg.observed_behind
         self._observed: tuple[np.ndarray, ...] | None = None  # per-vertex values support interpolates
 
@@ -182,6 +187,19 @@ FloorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 _FREE_DISTANCE = 1e-3  # m: the base's signed distance in cells the floor lifts (seen free: no crossing there)
 
 
+def _base_distance(base, pts: np.ndarray, vox: np.ndarray, lookup: PriorLookup, lift: np.ndarray | None,
+                   trained_rays: float) -> tuple[np.ndarray, np.ndarray]:
+    """The base's signed distance at ``pts`` (in voxels ``vox``) and where a render reads it: where
+    the base knows one inside an allocated voxel that has trained on fewer than ``trained_rays``
+    rays; raised to just
+    above zero where the floor ``lift`` applies (the frames saw through: no surface there)."""
+    dist, known = base.sample_distance(pts)
+    known &= (vox >= 0) & (lookup.trained[np.maximum(vox, 0)] < trained_rays)
+    if lift is not None:
+        dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
+    return dist, known
+
+
 def free_floor_fn(votes, voxels, floor: float) -> FloorFn | None:
     """``f(points (N, 3) m, voxel ids (N,)) -> (N,)`` lower bounds of the SDF (truncation units):
     ``floor`` in the cells ``votes`` (a :class:`~h3edge.mapping.cell_votes.CellVotes`) hold seen
@@ -209,7 +227,8 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
     n = len(dirs)
     base = neural_field.color_base if cfg.base_surface > 0 else None
     base = base if base is not None and len(base) else None  # the fused surface the searches and windows read
-    snap = {"base": base, "base_surface": cfg.base_surface} if base is not None else {}
+    snap = ({"base": base, "base_surface": cfg.base_surface, "base_trained_rays": cfg.base_trained_rays}
+            if base is not None else {})
     depth = np.zeros(n, np.float32)
     color = np.zeros((n, 3), np.float32)
     lookup = PriorLookup(voxels)  # one voxel table and prior copy for every stage of this render
@@ -287,7 +306,8 @@ def _search_end(t_centre: np.ndarray, cfg: RenderConfig) -> np.ndarray:
 @torch.no_grad()
 def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs: np.ndarray, t_lo: np.ndarray,
                     t_hi: np.ndarray, step: float, dev, chunk: int = 4096, exit_tolerance: float = 0.0,
-                    floor: FloorFn | None = None, base=None, base_surface: float = 0.0) -> np.ndarray:
+                    floor: FloorFn | None = None, base=None, base_surface: float = 0.0,
+                    base_trained_rays: float = float("inf")) -> np.ndarray:
     """First + to - crossing (z-depth, -1 where none) of the full SDF (prior + residual) along each
     ray between ``t_lo`` and ``t_hi`` (per ray), sampled every ``step`` where the samples lie in
     allocated voxels (only those are evaluated); a crossing lies between two neighbouring samples.
@@ -297,7 +317,7 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
     step. ``chunk`` rays are searched at a time; ``floor``: lower bounds of the SDF (:func:`free_floor_fn`).
     ``base``: a fused base (:class:`~h3edge.mapping.color_base.ColorBase`) whose first crossing
     of its signed distance is taken instead where it lies more than ``base_surface`` (m) in front
-    of the field's, or the field has none."""
+    of the field's, or the field has none, in voxels trained on fewer than ``base_trained_rays`` rays."""
     out = np.full(len(dirs), -1.0)
     if len(lookup.vv) == 0 or len(dirs) == 0:
         return out
@@ -324,7 +344,8 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         for a in range(0, len(pts), 1 << 18):  # bounded activations
             p = torch.from_numpy(pts[a:a + (1 << 18)].astype(np.float32)).to(dev)
             sdf[a:a + len(p)] += neural_field.sdf_mlp(neural_field.geo_grid(p))[:, 0].float().cpu().numpy()
-        lift = floor(pts, lookup(pts)[1]) if floor is not None else None
+        vox = lookup(pts)[1] if floor is not None or base is not None else None
+        lift = floor(pts, vox) if floor is not None else None
         if lift is not None:
             sdf = np.maximum(sdf, lift)
         pair = (ray[1:] == ray[:-1]) & (np.abs(ts[1:] - ts[:-1] - step) < 0.5 * step)  # neighbours
@@ -342,9 +363,7 @@ def field_crossings(neural_field, lookup: PriorLookup, origin: np.ndarray, dirs:
         rays, first = np.unique(ray[cross], return_index=True)
         out[s + rays] = t_event[first]
         if base is not None:  # the base's first crossing, where it lies in front of the field's
-            dist, known = base.sample_distance(pts)
-            if lift is not None:  # no surface of the base's either where the frames saw through
-                dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
+            dist, known = _base_distance(base, pts, vox, lookup, lift, base_trained_rays)
             bc = np.flatnonzero(pair & known[:-1] & known[1:] & (dist[:-1] > 0) & (dist[1:] <= 0))
             if len(bc):
                 t_b = ts[bc] + (ts[bc + 1] - ts[bc]) * dist[bc] / (dist[bc] - dist[bc + 1])
@@ -396,9 +415,7 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
         depth_r = torch.where(crossed, t_zero, out.depth)
         hit = out.hit | crossed
         if base is not None:
-            dist, known = base.sample_distance(pts_np)
-            if lift is not None:
-                dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
+            dist, known = _base_distance(base, pts_np, vox, lookup, lift, cfg.base_trained_rays)
             t_base, on_base = window_crossing(torch.from_numpy(dist.reshape(t.shape)).to(t), t,
                                               torch.from_numpy(known.reshape(t.shape)).to(dev))
             snap = on_base & (~hit | ((t_base - depth_r).abs() > cfg.base_surface))

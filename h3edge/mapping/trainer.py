@@ -211,7 +211,8 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     voted free take no SDF target (:mod:`h3edge.mapping.cell_votes`). ``commit``: a context the
     optimiser updates run in (the map lock, when integration runs on another thread meanwhile:
     the forward and backward passes only read the map, and a prior tensor that integration grew
-    meanwhile takes the gradient the step computed)."""
+    meanwhile takes the gradient the step computed). The step's rays count in the voxels their
+    measured surface points fall in (:meth:`VoxelMap.count_trained`)."""
     tr = voxels.cfg.truncation
     priors_used = voxels.priors
     t, b0 = sample_depths(rays.depth, cfg, tr, near, generator)
@@ -268,6 +269,9 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
     l_d = depth_l1(out.depth[hit], rays.depth[hit]) if hit.any() else sdf.sum() * 0
     loss = w.rgb * l_rgb + w.depth * l_d + w.free_space * fs + w.sdf * sdf_loss
     located = locate_surface_points(voxels, rays)  # one lookup for both surface-point losses
+    measured = rays.depth > 0  # the voxels this step's rays ended in, counted once it commits
+    ends = voxels.locate((rays.origins[measured] + rays.dirs[measured] * rays.depth[measured, None])
+                         .detach().cpu().numpy())[0]
     l_surf = surface_color_loss(neural_field, voxels, rays, located)
     if l_surf is not None:
         loss = loss + w.surface_rgb * l_surf
@@ -284,6 +288,7 @@ def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer:
         if prior_opt is not None:
             prior_opt.step(voxels, priors_used)
         neural_field.sparse_step(cfg.lr)
+        voxels.count_trained(ends)
     return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
             "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean()),
             "carved": carved, "surface_rgb": float(l_surf.detach()) if l_surf is not None else 0.0,

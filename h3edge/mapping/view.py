@@ -26,10 +26,16 @@ from h3edge.mapping.voxels import VoxelMap
 
 
 def _inference_copy(field: Field) -> Field:
-    """Deep copy of ``field`` without optimiser state or gradient scratch (not trainable)."""
+    """Deep copy of ``field`` without optimiser state or gradient scratch (not trainable). The
+    colour base is shared, not copied: at its cap it is as large as the rest of the map, and a copy
+    per query would not fit the memory plan. A query reads it while frames fuse into it: it may see
+    colours and cells fused since, never a torn table (rows are written before the slots that point
+    at them; a grown table is new arrays, the old ones stay whole for a reader that holds them)."""
     memo: dict = {}
     for g in field.hash_grids():
         memo.update(g.inference_copy_memo())
+    if field.color_base is not None:
+        memo[id(field.color_base)] = field.color_base
     with torch.no_grad():
         out = copy.deepcopy(field, memo)
     for p in out.parameters():

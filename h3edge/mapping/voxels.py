@@ -182,6 +182,9 @@ class VoxelMap:
         # m, per vertex: the least depth behind a frame's measured surface at which a frame saw it
         # (negative: in front of it); +inf: never seen on valid depth (see observed_behind)
         self.seen_behind = np.zeros(0, np.float32)
+        # training rays whose measured surface point fell in each voxel (by voxel id): how far the
+        # field has trained there, which decides where a render trusts the fused base over it
+        self.trained = np.zeros(0, np.float32)
         self.refused = 0  # voxels not allocated because of the cap
         self._table: tuple[np.ndarray, VoxelTable] | None = None  # (the keys it indexes, the table)
 
@@ -193,7 +196,7 @@ class VoxelMap:
         arrays = {"keys": self.voxels.state_dict(), "vertex_keys": self.vertices.state_dict(),
                   "voxel_vertices": self.voxel_vertices.copy(), "priors": self.priors.detach().cpu().numpy().copy(),
                   "prior_set": self.prior_set.copy(), "prior_obs": self.prior_obs.copy(),
-                  "seen_behind": self.seen_behind.copy()}
+                  "seen_behind": self.seen_behind.copy(), "trained": self.trained.copy()}
         return {"voxels_refused": self.refused}, arrays
 
     def frozen_copy(self) -> VoxelMap:
@@ -204,6 +207,7 @@ class VoxelMap:
         out.priors = self.priors.detach().clone()
         out.prior_set, out.prior_obs = self.prior_set.copy(), self.prior_obs.copy()
         out.seen_behind = self.seen_behind.copy()
+        out.trained = self.trained.copy()
         return out
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
@@ -217,6 +221,9 @@ class VoxelMap:
         # a state from before the record: every vertex counts as seen (the support it was saved with)
         self.seen_behind = (arrays["seen_behind"].astype(np.float32) if "seen_behind" in arrays
                             else np.full(len(self.prior_set), -np.inf, np.float32))
+        # a state from before the count: every voxel counts as trained (renders keep the field's surface)
+        self.trained = (arrays["trained"].astype(np.float32) if "trained" in arrays
+                        else np.full(len(self.voxel_vertices), np.inf, np.float32))
         self.refused = int(meta["voxels_refused"])
 
     @property
@@ -271,6 +278,13 @@ class VoxelMap:
             self._init_priors(todo, vid, sdf, valid)
         return new
 
+    def count_trained(self, voxel_ids: np.ndarray) -> None:
+        """Add one trained ray to each voxel in ``voxel_ids`` (int64, -1: none; repeats count)."""
+        ids = voxel_ids[(voxel_ids >= 0) & (voxel_ids < len(self.trained))]
+        if len(ids):
+            u, n = np.unique(ids, return_counts=True)
+            self.trained[u] += n
+
     def _record_seen(self, vid: np.ndarray, sdf: np.ndarray, valid: np.ndarray) -> None:
         """Lower ``seen_behind`` of vertices ``vid`` to how far behind this frame's measured surface
         they lie (``-sdf``), where they project onto valid depth."""
@@ -286,6 +300,7 @@ class VoxelMap:
         fresh_ids = self.vertices.add(fresh)
         ids[missing] = fresh_ids[np.searchsorted(fresh, corner_keys[missing])]
         self.voxel_vertices = np.concatenate([self.voxel_vertices, ids.reshape(-1, 8)])
+        self.trained = np.concatenate([self.trained, np.zeros(len(new_keys), np.float32)])
         grown = torch.full((len(fresh),), float(self.cfg.unset_prior), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])

@@ -26,7 +26,7 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
                                 (f.tex_log2_table, f.tex_levels, f.tex_features)):
         rows = levels * (1 << log2)
         tables += rows * feats * 4 * 4 + rows  # table, Adam m, v, gradient scratch; touched flags
-    per_voxel = 366  # keys, index, 8 vertex ids, ~1.5 vertices (key, prior, Adam, seen_behind), texture state, warps
+    per_voxel = 370  # keys, index, 8 vertex ids, trained rays, ~1.5 vertices (key, prior, Adam, seen_behind), texture
     voxels = settings.voxels.max_voxels * per_voxel
     snapshot = tables // 4 + voxels // 2  # a query's frozen copy: the tables and the voxel map
     budget = int(budget_mb) << 20
@@ -39,9 +39,9 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     # fine free-space votes at the voxel cap, one byte a cell: the map's and the checkpoint's copy (a
     # query's map copy shares the map's)
     votes = 2 * settings.voxels.max_voxels * settings.votes.cells_per_side(settings.voxels.voxel_size) ** 3
-    # the fused colour base at its cap: the map's and a query's copy, and the checkpoint's rows
+    # the fused colour base at its cap: the map's (a query's map copy shares it) and the checkpoint's rows
     base = settings.color_base.nbytes()
-    base = 2 * base + base * 3 // 4
+    base = base + settings.color_base.max_cells * 28
     left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes - base
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
