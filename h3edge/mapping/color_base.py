@@ -9,14 +9,16 @@ the neural colour field learns only what the base cannot hold (view-consistent s
 detail, unseen cells).
 
 Cells (``cell`` metres a side) exist only where depth put a surface: each frame's valid pixels
-(every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) fuse
-their colour into the cells at their measured depth and ``band`` cells in front of and behind it
-along their ray (the volume the render weights live in), in an open-addressed hash table
+(every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) reach
+the cells at their measured depth and ``band`` cells in front of and behind it along their ray
+(the volume the render weights live in); each cell reached takes the colour of the pixel its own
+centre projects into (projective, as TSDF fusion: the reaching ray's colour blurs the base by up to
+a cell, more at grazing angles). The cells live in an open-addressed hash table
 (:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` of them (new cells past it are
 refused and counted). Colour is read with trilinear weights between cell centres, renormalised over
 the cells that hold one (or, in a gap between fused pixels, the mean of the known cells around).
 
-Each cell also fuses its centre's signed distance in front of the measured depth (along the fusing
+Each cell also fuses its centre's signed distance in front of that pixel's depth (along the fusing
 camera's z axis), a TSDF whose band is the colour's: :meth:`ColorBase.sample_distance` reads it,
 and a render (``render.base_surface``, :mod:`h3edge.mapping.raymarch`) places a surface at its zero
 crossing where the field has not (yet) put one there: the geometry every integrated frame measured,
