@@ -191,8 +191,8 @@ def _base_distance(base, pts: np.ndarray, vox: np.ndarray, lookup: PriorLookup, 
                    trained_rays: float) -> tuple[np.ndarray, np.ndarray]:
     """The base's signed distance at ``pts`` (in voxels ``vox``) and where a render reads it: where
     the base knows one inside an allocated voxel that has trained on fewer than ``trained_rays``
-    rays; raised to just
-    above zero where the floor ``lift`` applies (the frames saw through: no surface there)."""
+    rays. Raised to just above zero where the floor ``lift`` applies (the frames saw through: no
+    surface there)."""
     dist, known = base.sample_distance(pts)
     known &= (vox >= 0) & (lookup.trained[np.maximum(vox, 0)] < trained_rays)
     if lift is not None:
