@@ -97,7 +97,7 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
     signed distance of its centre in front of that pixel's depth along the camera's z axis (m,
     positive in front); where that pixel has no depth or lies across a depth edge (> 2 (band + 1)
     cells from z), the reaching pixel's colour and depth. Both as running averages (``cells`` rows:
-    R, G, B, weight, signed distance) whose weight grows by one a frame up to ``max_weight`` (a
+    R, G, B, weight, signed distance) whose weight grows by one a fusion up to ``max_weight`` (a
     cell the previous pixel's sample reached already is not fused again). New cells take rows
     from ``n`` up to ``len(keys)``; past it they are refused. Returns (rows in use, cells refused)."""
     h, w = depth.shape

@@ -52,7 +52,8 @@ from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_
 # the 4^3 blocks' neighbouring homes make long at half load: a restored real map (878k cells), 1M
 # points read at load 0.42 / 0.21 / 0.10: 2.52 / 0.53 / 0.35 s, its render 48 -> 22 s at 0.10
 _SLOTS_PER_ROW = 4
-BYTES_PER_CELL = 28 + 4 * _SLOTS_PER_ROW  # key 8 + RGB 12 + weight 4 + signed distance 4, and the slots
+ROW_BYTES = 28  # a cell's row: key 8 + RGB 12 + weight 4 + signed distance 4 (what a checkpoint holds)
+BYTES_PER_CELL = ROW_BYTES + 4 * _SLOTS_PER_ROW  # the row and its slots
 REACH_CELLS = 2.0  # fused pixels lie at most this many cells apart on the surface (the reads bridge gaps)
 _MIN_ROWS = 1 << 15
 

@@ -4,6 +4,7 @@ observed free space at its cap, and what is left for keyframes (the keyframe set
 
 from __future__ import annotations
 
+from h3edge.mapping.color_base import ROW_BYTES
 from h3edge.mapping.mapper import RAY_TABLES, MapSettings
 
 # Peak bytes per pixel of decoding and mapping one frame beyond the ray table (decoded images,
@@ -41,7 +42,7 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     votes = 2 * settings.voxels.max_voxels * settings.votes.cells_per_side(settings.voxels.voxel_size) ** 3
     # the fused colour base at its cap: the map's (a query's map copy shares it) and the checkpoint's rows
     base = settings.color_base.nbytes()
-    base = base + settings.color_base.max_cells * 28
+    base = base + settings.color_base.max_cells * ROW_BYTES
     left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes - base
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,
