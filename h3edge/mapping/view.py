@@ -61,8 +61,10 @@ class MapView:
         self.frames_mapped = frames_mapped
 
     def frozen(self, decoders: DecoderRuntime | None = None) -> MapView:
-        """An independent copy (call where the field is not being updated). With ``decoders`` its
-        SDF and colour decoders run on that runtime's shared onnxruntime sessions."""
+        """A copy of the field, voxels and free space (call where the field is not being updated);
+        the colour base and the votes are shared with this view, not copied (their rows only grow,
+        so a query beside integration reads a whole table). With ``decoders`` its SDF and colour
+        decoders run on that runtime's shared onnxruntime sessions."""
         field = _inference_copy(self.field)
         if decoders is not None:
             field.sdf_mlp = decoders.mlp(field.sdf_mlp)
