@@ -36,6 +36,29 @@ def test_a_frame_colours_the_cells_at_its_depth_and_the_band_around_it_only():
     assert rgb[1] * 255 == pytest.approx(torch.full((3,), 200.0), abs=0.5)
 
 
+def test_a_cell_takes_the_colour_and_depth_of_the_pixel_its_centre_projects_into():
+    """Projective fusion: with cells several pixels wide (5 cm at 0.5 m: 4 pixels), each cell holds
+    the colour of the pixel its centre projects into, as TSDF fusion's voxels do, not the mean of
+    the pixels whose rays reached it (columns alternate black and white here: that mean is grey)."""
+    from h3edge.geometry.camera import project
+
+    near_wall = np.full((INTR.height, INTR.width), 0.5, np.float32)
+    stripes = np.zeros((INTR.height, INTR.width, 3), np.uint8)
+    stripes[:, 1::2] = 255
+    base = ColorBase(ColorBaseConfig(cell=0.05, band=0, stride=1))
+    base.fuse(stripes, near_wall, INTR, FRONT)
+    keys = base.keys[:base.n]
+    ijk = np.stack([(keys >> (21 * a)) & ((1 << 21) - 1) for a in range(3)], 1) - (1 << 20)
+    uv, z = project((ijk + 0.5) * 0.05, INTR, FRONT)
+    pix = np.floor(uv).astype(int)
+    inside = (z > 0) & (pix[:, 0] >= 0) & (pix[:, 0] < INTR.width) & (pix[:, 1] >= 0) & (pix[:, 1] < INTR.height)
+    assert inside.mean() > 0.9
+    expected = stripes[pix[inside, 1], pix[inside, 0], 0] / 255.0
+    assert np.abs(base.cells[:base.n][inside, 0] - expected).max() < 1e-6
+    # and its signed distance is its centre's in front of that pixel's depth (0.5 m, along +y here)
+    assert np.abs(base.cells[:base.n][inside, 4] - (0.5 - z[inside])).max() < 1e-5
+
+
 def test_a_frame_fuses_the_signed_distance_of_the_cells_around_its_depth():
     """The wall 2 m ahead along +y: the fused distance reads 0 on it, + in front, - behind, and
     nothing past the band (5 cm cells: a pixel's footprint here, so that neighbouring cells hold one)."""

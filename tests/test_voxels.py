@@ -286,5 +286,7 @@ def test_trained_rays_count_per_voxel_grow_with_the_map_and_survive_state_dict()
     old = VoxelMap(vm.cfg)
     old.load_state_dict(meta, {k: v for k, v in arrays.items() if k != "trained"})
     assert len(old.trained) == n and (old.trained == np.inf).all()  # from before the count: trained
+    with pytest.raises(ValueError, match="trained-ray counts"):  # a state whose counts do not fit its voxels
+        VoxelMap(vm.cfg).load_state_dict(meta, {**arrays, "trained": arrays["trained"][:-1]})
     vm._insert(np.array([pack(np.array([[900, 900, 900]]))[0]]))
     assert len(vm.trained) == n + 1 and vm.trained[-1] == 0

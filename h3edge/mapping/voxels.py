@@ -224,6 +224,9 @@ class VoxelMap:
         # a state from before the count: every voxel counts as trained (renders keep the field's surface)
         self.trained = (arrays["trained"].astype(np.float32) if "trained" in arrays
                         else np.full(len(self.voxel_vertices), np.inf, np.float32))
+        if self.trained.shape != (len(self.voxel_vertices),):
+            raise ValueError(f"voxel state: {self.trained.shape} trained-ray counts for "
+                             f"{len(self.voxel_vertices)} voxels")
         self.refused = int(meta["voxels_refused"])
 
     @property
