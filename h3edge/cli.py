@@ -134,7 +134,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _zenoh_conf(args: argparse.Namespace):
-    from h3edge.serving.transport import zenoh_config
+    from h3edge.io.zenoh_session import zenoh_config
 
     return zenoh_config(args.zenoh_config, args.mode, args.connect, args.listen,
                         False if args.no_multicast else None)
@@ -193,7 +193,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_view(args: argparse.Namespace) -> int:
     from h3edge.apps.viewer import run_viewer
-    from h3edge.serving.transport import open_session
+    from h3edge.io.zenoh_session import open_session
 
     try:
         import rerun  # noqa: F401
@@ -223,11 +223,13 @@ def _cmd_sim_bag(args: argparse.Namespace) -> int:
 
 def _cmd_sim_publish(args: argparse.Namespace) -> int:
     from h3edge.io import open_sequence
-    from h3edge.serving.transport import Keys, open_session, publish_sequence
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.sim.publish import publish_sequence
 
     seq = open_sequence(args.sequence, _ros_config(args))
     if args.as_ros:
-        from h3edge.serving.transport import publish_ros_sequence
+        from h3edge.sim.publish import publish_ros_sequence
 
         cfg = _ros_config(args)
         with open_session(_zenoh_conf(args)) as session:
@@ -249,7 +251,8 @@ def _cmd_camera_oak(args: argparse.Namespace) -> int:
     import threading
 
     from h3edge.io import oak
-    from h3edge.serving.transport import Keys, open_session
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
 
     try:
         cfg = oak.OakConfig(args.width, args.height, args.fps, args.pose_source, args.pose_wait,
@@ -280,80 +283,96 @@ def _parse_floats(text: str, n: int, what: str) -> list[float]:
 
 
 def _cmd_query(args: argparse.Namespace) -> int:
+    import io
+
     import numpy as np
 
     from h3edge.geometry.camera import look_at
-    from h3edge.io.protocol import pose_to_json
-    from h3edge.serving.transport import Keys, RemoteError, open_session, query, save_render_reply
+    from h3edge.io.protocol import pose_from_json
+    from h3edge.serving.client import Client, RemoteError
 
-    keys = Keys.for_map(args.map_id or "default")
-    payload = None
-    if args.what == "mesh":
-        payload = {"format": args.format}
-        if args.resolution:
-            payload["resolution"] = args.resolution
-        if args.aabb:
-            v = _parse_floats(args.aabb, 6, "--aabb")
-            payload["aabb"] = [v[:3], v[3:]]
-    elif args.what == "render":
+    what = args.what
+    if what == "render":
+        if not args.out:
+            raise SystemExit("error: render needs --out PREFIX")
         if args.pose:
             v = _parse_floats(args.pose, 7, "--pose (tx ty tz qx qy qz qw)")
-            pose = {"t": v[:3], "q": v[3:]}
+            c2w = pose_from_json({"t": v[:3], "q": v[3:]}, "--pose")
         elif args.look_at:
             v = _parse_floats(args.look_at, 6, "--look-at (eye xyz, target xyz)")
-            pose = pose_to_json(look_at(np.array(v[:3]), np.array(v[3:])))
+            c2w = look_at(np.array(v[:3]), np.array(v[3:]))
         else:
             raise SystemExit("error: render needs --pose or --look-at")
-        payload = {"pose": pose, "width": args.width, "height": args.height, "fov_deg": args.fov}
-    elif args.what == "sdf":
-        if not args.points:
-            raise SystemExit("error: sdf needs --points FILE (.npy (N, 3) or text x y z per line)")
-        pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
-        payload = np.ascontiguousarray(pts, "<f4").reshape(-1, 3).tobytes()
-    elif args.what == "slice":
-        if args.z is None or not args.aabb:
-            raise SystemExit("error: slice needs --z and --aabb x0,y0,x1,y1")
-        box = _parse_floats(args.aabb, 4, "--aabb (x0,y0,x1,y1)")
-        payload = {"z": args.z, "aabb": [box[:2], box[2:]], "resolution": args.cell}
-    elif args.what in ("save", "load", "export"):
-        payload = {"name": args.name} if args.name else {}
-        if args.what == "export":
-            payload["format"] = args.format
-    with open_session(_zenoh_conf(args)) as session:
+    elif what == "sdf" and not args.points:
+        raise SystemExit("error: sdf needs --points FILE (.npy (N, 3) or text x y z per line)")
+    elif what == "slice" and (args.z is None or not args.aabb):
+        raise SystemExit("error: slice needs --z and --aabb x0,y0,x1,y1")
+    with Client(args.map_id or "default", _zenoh_conf(args), timeout=args.timeout) as client:
         try:
-            params = "gradient=true" if args.what == "sdf" and args.gradient else ""
-            data = query(session, getattr(keys, args.what), payload, params, timeout=args.timeout)
+            if what in ("status", "profile", "save", "load", "export"):
+                reply = (client.status() if what == "status" else client.profile() if what == "profile"
+                         else client.export(args.name, args.format) if what == "export"
+                         else getattr(client, what)(args.name))
+                if what == "profile" and not args.out:
+                    print(reply["table"])
+                    return 0
+                _write_or_print(args.out, json.dumps(reply).encode())
+            elif what == "mesh":
+                aabb = _parse_floats(args.aabb, 6, "--aabb") if args.aabb else None
+                _write_or_print(args.out, client.mesh(args.format, args.resolution, aabb))
+            elif what == "render":
+                from h3edge.io.sequence import write_color, write_depth
+
+                color, depth = client.render(c2w, args.width, args.height, fov_deg=args.fov)
+                stem = Path(args.out).with_suffix("") if Path(args.out).suffix else Path(args.out)
+                cpath, dpath = Path(f"{stem}_color.png"), Path(f"{stem}_depth.png")
+                cpath.parent.mkdir(parents=True, exist_ok=True)
+                write_color(cpath, color)
+                write_depth(dpath, depth, 1000.0)
+                print(f"wrote {cpath} and {dpath}")
+            else:
+                if what == "sdf":
+                    pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
+                    d = client.signed_distance(pts, args.gradient)
+                    arrays = {"sdf": d.sdf, "state": d.state}
+                    if d.gradient is not None:
+                        arrays["gradient"] = d.gradient
+                    meta = None
+                else:
+                    box = _parse_floats(args.aabb, 4, "--aabb (x0,y0,x1,y1)")
+                    sl = client.slice(args.z, box[:2], box[2:], args.cell)
+                    arrays = {"occupancy": sl.occupancy, "distance": sl.distance}
+                    meta = {"resolution": sl.resolution, "origin": list(sl.origin), "frame": "world",
+                            "rows": "y up from origin"}
+                if args.out:
+                    if meta:
+                        arrays_out = dict(arrays, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+                    else:
+                        arrays_out = arrays
+                    buf = io.BytesIO()
+                    np.savez(buf, **arrays_out)
+                    Path(args.out).write_bytes(buf.getvalue())
+                    print(f"wrote {args.out} (.npz: {', '.join(f'{k} {v.shape}' for k, v in arrays.items())})")
+                else:
+                    print(json.dumps({k: v.tolist() if v.size <= 64 else f"{v.dtype} {v.shape}"
+                                      for k, v in arrays.items()}))
+                    if meta:
+                        print(json.dumps(meta))
         except RemoteError as e:
             print(f"error from the service: {e}", file=sys.stderr)
             return 1
         except TimeoutError as e:
             print(f"error: {e}", file=sys.stderr)
             return 1
-    if args.what == "render":
-        if not args.out:
-            raise SystemExit("error: render needs --out PREFIX")
-        c, d = save_render_reply(data, Path(args.out))
-        print(f"wrote {c} and {d}")
-    elif args.what in ("sdf", "slice"):
-        from h3edge.serving.transport import read_npz
-
-        arrays = read_npz(data)
-        if args.out:
-            Path(args.out).write_bytes(data)
-            print(f"wrote {args.out} (.npz: {', '.join(f'{k} {v.shape}' for k, v in arrays.items())})")
-        else:
-            print(json.dumps({k: v.tolist() if v.size <= 64 else f"{v.dtype} {v.shape}" for k, v in arrays.items()
-                              if k != "meta"}))
-            if "meta" in arrays:
-                print(arrays["meta"].tobytes().decode())
-    elif args.out:
-        Path(args.out).write_bytes(data)
-        print(f"wrote {args.out} ({len(data)} bytes)")
-    elif args.what == "profile":
-        print(json.loads(data)["table"])
-    else:
-        print(data.decode())
     return 0
+
+
+def _write_or_print(out: str | None, data: bytes) -> None:
+    if out:
+        Path(out).write_bytes(data)
+        print(f"wrote {out} ({len(data)} bytes)")
+    else:
+        print(data.decode(errors="replace"))
 
 
 def _cmd_profile_report(args: argparse.Namespace) -> int:
@@ -363,9 +382,10 @@ def _cmd_profile_report(args: argparse.Namespace) -> int:
     mid = args.map_id or "default"
 
     def live(map_id: str) -> dict:
-        from h3edge.serving.transport import fetch_profile
+        from h3edge.serving.client import Client
 
-        return fetch_profile(conf, map_id)
+        with Client(map_id, conf, timeout=10.0) as client:
+            return client.profile()
 
     try:
         doc = load_document(args.source, live, mid)
@@ -395,7 +415,10 @@ def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from h3edge import __version__
+
     p = argparse.ArgumentParser(prog="h3edge", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"h3edge {__version__}")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -546,7 +569,22 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--timeout", type=float, default=60.0)
     _add_zenoh_args(q)
     q.set_defaults(func=_cmd_query)
+    _show_defaults(p)
     return p
+
+
+def _show_defaults(parser: argparse.ArgumentParser) -> None:
+    """Every option of every command says its default in ``--help`` (those that have one)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _show_defaults(sub)
+            continue
+        if (action.default is None or action.default is False or action.default == argparse.SUPPRESS
+                or not action.option_strings
+                or "%(default)" in (action.help or "")):
+            continue
+        action.help = f"{action.help} (default: %(default)s)" if action.help else "default: %(default)s"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,5 @@
-"""Device profiles: ``h3edge/profiles/*.toml`` (package data) loaded into typed dataclasses.
+"""Device profiles: ``h3edge/profiles/*.toml`` (package data) loaded into typed dataclasses (the
+mapping tables through :mod:`h3edge.mapping.settings_file`, which the library reads on its own).
 
 Each TOML table maps onto one dataclass section of :class:`Profile`; every key must be a field
 of it (a typo is an error naming the file, table and key, not a silently ignored setting) and
@@ -10,29 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 import typing
 from dataclasses import dataclass
 from pathlib import Path
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # JetPack 6's Python 3.10
-    import tomli as tomllib
-
-from h3edge.errors import InputError
 from h3edge.eval.evaluate import EvalConfig
 from h3edge.io.ros import RosConfig
-from h3edge.mapping.mapper import MapSettings
+from h3edge.mapping.engine import MapSettings
 from h3edge.mapping.onnx_decoders import InferenceConfig
+from h3edge.mapping.settings_file import MAPPING_TABLES, ProfileError, map_settings, read_profile_tables, section
 from h3edge.serving.service import ServiceConfig
-
-# Shipped inside the package (package data); the repository's top-level profiles/ links here.
-PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
-
-
-class ProfileError(InputError):
-    """An invalid profile file: the message names the file, table and key."""
 
 
 @dataclass(frozen=True)
@@ -57,54 +45,19 @@ class Profile:
         return dataclasses.replace(self, mapping=mapping)
 
 
-def _coerce(value, tp, where: str):
-    if tp is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if tp in (int, float, str, bool) and not (isinstance(value, tp) and not (tp is int and isinstance(value, bool))):
-        raise ProfileError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
-    return value
-
-
-def _section(cls, table: dict, where: str):
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for key, value in table.items():
-        if key not in names:
-            raise ProfileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
-        if hints[key] not in (int, float, str, bool):
-            raise ProfileError(f"{where}: {key!r} is not settable here (it has its own table)")
-        kwargs[key] = _coerce(value, hints[key], f"{where}.{key}")
-    try:
-        return cls(**kwargs)
-    except ValueError as e:  # a section's own check (__post_init__)
-        raise ProfileError(f"{where}: {e}") from None
-
-
 def load_profile(path: str | Path) -> Profile:
     """Load a profile file; a bare name like ``x86-cpu`` is one of the profiles shipped in the package."""
-    p = Path(path)
-    if not p.suffix and not p.exists():
-        p = PROFILES_DIR / f"{p.name}.toml"
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ProfileError(f"{p}: profile not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ProfileError(f"{p}: {e}") from None
+    p, data = read_profile_tables(path)
     own = {f.name for f in dataclasses.fields(Profile)} - {"name", "mapping"}
-    mapping_sections = {f.name for f in dataclasses.fields(MapSettings)}
     kwargs: dict = {"name": data.pop("name", p.stem)}
-    mapping: dict = {}
     for key, value in data.items():
-        if key not in own | mapping_sections:
-            raise ProfileError(f"{p}: unknown table [{key}] (known: {', '.join(sorted(own | mapping_sections))})")
+        if key not in own | MAPPING_TABLES:
+            raise ProfileError(f"{p}: unknown table [{key}] (known: {', '.join(sorted(own | MAPPING_TABLES))})")
         if not isinstance(value, dict):
             raise ProfileError(f"{p}: [{key}] must be a table")
-        owner = Profile if key in own else MapSettings
-        section = _section(typing.get_type_hints(owner)[key], value, f"{p}: [{key}]")
-        (kwargs if key in own else mapping)[key] = section
-    return Profile(mapping=MapSettings(**mapping), **kwargs)
+        if key in own:
+            kwargs[key] = section(typing.get_type_hints(Profile)[key], value, f"{p}: [{key}]")
+    return Profile(mapping=map_settings(data, str(p)), **kwargs)
 
 
 def apply_overrides(settings: MapSettings, overrides: list[str]) -> MapSettings:

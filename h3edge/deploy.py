@@ -57,7 +57,7 @@ def measure_runtime_mb(device: str) -> float:
     import torch
     import zenoh  # noqa: F401
 
-    import h3edge.mapping.mapper  # noqa: F401  (the module-level numba kernels)
+    import h3edge.mapping.engine  # noqa: F401  (the module-level numba kernels)
 
     rss = _rss_mb()
     if device in ("cuda", "auto") and torch.cuda.is_available():
@@ -94,7 +94,8 @@ def memory_limits(budget_mb: int, runtime_mb: float, total_mb: float | None = No
 def plan(profile: str | None, model_file: str | Path = "/proc/device-tree/model",
          meminfo: str | Path = "/proc/meminfo", runtime_mb: float | None = None) -> dict:
     """The install plan as a dict of shell variables (see the module docstring)."""
-    from h3edge.config import PROFILES_DIR, load_profile
+    from h3edge.config import load_profile
+    from h3edge.mapping.settings_file import PROFILES_DIR
 
     model = Path(model_file).read_text(errors="replace").strip("\x00\n ") if Path(model_file).exists() else ""
     name = profile or profile_for_model(model)

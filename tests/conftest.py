@@ -47,8 +47,8 @@ def _forced_device(monkeypatch):
         return
     import torch
 
+    from h3edge.mapping import engine as mapper_mod
     from h3edge.mapping import field as field_mod
-    from h3edge.mapping import mapper as mapper_mod
 
     real_resolve = mapper_mod.resolve_device
     monkeypatch.setattr(mapper_mod, "resolve_device", lambda name: real_resolve(forced))

@@ -106,13 +106,16 @@ def acl_service(tmp_path_factory, tiny_scene):
 
 
 def _status(session, keys, timeout=5.0) -> dict:
-    from h3edge.serving.transport import query
+    from h3edge.serving.client import query
 
     return json.loads(query(session, keys.status, timeout=timeout))
 
 
 def test_tls_acl_roles(acl_service):
-    from h3edge.serving.transport import Keys, RemoteError, open_session, publish_sequence, query, wait_for_service
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.client import RemoteError, query, wait_for_service
+    from h3edge.sim.publish import publish_sequence
 
     d, port, seq = acl_service
     keys = Keys.for_map("acl")

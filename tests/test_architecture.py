@@ -29,8 +29,21 @@ def test_layers_point_one_way():
 
 
 def test_ruff_is_clean():
-    r = subprocess.run([_tool("ruff"), "check", "h3edge", "tests"], cwd=ROOT, capture_output=True, text=True)
+    r = subprocess.run([_tool("ruff"), "check", "h3edge", "tests", "benchmarks"], cwd=ROOT, capture_output=True,
+                       text=True)
     assert r.returncode == 0, r.stdout[-4000:]
+
+
+def test_package_never_imports_benchmarks_or_tests():
+    """The wheel ships ``h3edge`` alone: nothing in it may import the repository's ``benchmarks`` or
+    ``tests`` (they are not installed)."""
+    bad = []
+    for p in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0
+                     else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+            bad += [f"{p.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] in ("benchmarks", "tests")]
+    assert not bad, bad
 
 
 def module_imports() -> dict[str, set[str]]:

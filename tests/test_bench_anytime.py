@@ -3,7 +3,7 @@ at its checkpoints, with its table, JSON, plot and picture."""
 
 import json
 
-from h3edge.bench.anytime import checkpoints, main
+from benchmarks.anytime import checkpoints, main
 
 
 def test_checkpoints_every_period_then_the_last_frame_then_standing_still():

@@ -2,7 +2,7 @@
 
 import json
 
-from h3edge.bench.frame_time import main
+from benchmarks.frame_time import main
 from h3edge.io.replica import ReplicaSequence
 
 

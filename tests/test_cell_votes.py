@@ -85,7 +85,7 @@ def test_off_by_default_and_a_cell_must_divide_the_voxel():
     with pytest.raises(ValueError, match="more than"):
         CellVotes(VoteConfig(cell=0.001), voxel_size=0.1, behind=0.05)  # 10^9 bytes a voxel
     from h3edge.config import apply_overrides
-    from h3edge.mapping.mapper import MapSettings
+    from h3edge.mapping.engine import MapSettings
 
     with pytest.raises(ValueError, match="divide"):  # refused when the profile loads
         apply_overrides(MapSettings(), ["votes.cell=0.03"])

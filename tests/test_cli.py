@@ -90,3 +90,25 @@ def test_map_writes_a_run_directory(tmp_path, tiny_scene):
                                   ["map", "--help"]])
 def test_help(argv):
     assert run(*argv).returncode == 0
+
+
+def test_version_and_help_defaults():
+    """``h3edge --version`` answers without loading torch; every command's ``--help`` shows the
+    defaults of its options (which profile ``map`` uses when none is given)."""
+    from h3edge import __version__
+    from h3edge.cli import build_parser
+
+    assert run("--version").stdout.strip() == f"h3edge {__version__}"
+    assert "(default: x86-cpu)" in " ".join(run("map", "--help").stdout.split())
+
+    def commands(parser):
+        for action in parser._actions:
+            if hasattr(action, "choices") and isinstance(action.choices, dict):
+                for sub in action.choices.values():
+                    yield sub
+                    yield from commands(sub)
+
+    missing = [f"{cmd.prog} {a.option_strings[0]}" for cmd in commands(build_parser()) for a in cmd._actions
+               if a.option_strings and a.default not in (None, False) and a.default != "==SUPPRESS=="
+               and "%(default)" not in (a.help or "")]
+    assert not missing, missing

@@ -128,14 +128,14 @@ def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene
     from h3edge.eval.evaluate import MeshRenderer, evaluate_views
     from h3edge.eval.tsdf import fuse_tsdf
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
 
     seq = ReplicaSequence(tiny_scene)
     cell = 0.02  # ~ a 160x120 pixel's footprint at the scene's depths
     scores = {}
     for label, cfg in (("base", ColorBaseConfig(cell=cell)), ("none", ColorBaseConfig())):
-        m = Mapper(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False),
+        m = MapEngine(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False),
                                voxels=VoxelConfig(min_points=3), color_base=cfg))
         for f in seq:
             assert m.integrate(f).mapped
@@ -168,11 +168,11 @@ def test_the_base_surface_is_read_only_in_voxels_training_has_not_reached(tiny_s
     """render.base_trained_rays: a voxel with fewer training rays than it renders the base's surface;
     once every voxel has trained past it, the render is the field's alone, pixel for pixel."""
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
 
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False),
+    m = MapEngine(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False),
                            voxels=VoxelConfig(min_points=3), color_base=ColorBaseConfig(cell=0.02)))
     for f in seq:
         assert m.integrate(f).mapped
@@ -195,19 +195,19 @@ def test_the_base_surface_is_read_only_in_voxels_training_has_not_reached(tiny_s
 
 def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
 
     seq = ReplicaSequence(tiny_scene)
     st = MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False), voxels=VoxelConfig(min_points=3),
                      color_base=ColorBaseConfig(cell=0.02))
-    m = Mapper(st)
+    m = MapEngine(st)
     for i in range(3):
         assert m.integrate(seq[i]).mapped
     # a query's frozen copy of the map shares the base (a copy per query would not fit the memory plan)
     assert m.view().frozen().field.color_base is m.color_base
     meta, arrays = m.state_dict()
-    r = Mapper.from_state_dict(st, meta, arrays)
+    r = MapEngine.from_state_dict(st, meta, arrays)
     assert len(r.color_base) == len(m.color_base) > 0 and r.field.color_base is r.color_base
     assert len(r.color_base.slots) >= 4 * len(r.color_base)  # restored with its slots a quarter full at most
     f = seq.heldout[0]

@@ -1,6 +1,7 @@
 import pytest
 
-from h3edge.config import PROFILES_DIR, ProfileError, load_profile
+from h3edge.config import load_profile
+from h3edge.mapping.settings_file import PROFILES_DIR, ProfileError
 
 
 @pytest.mark.parametrize("path", sorted(PROFILES_DIR.glob("*.toml")), ids=lambda p: p.stem)
@@ -30,7 +31,7 @@ def test_profile_by_name():
     ("[eval]\nn_points = 'many'\n", "expected int"),
     ("[eval\n", "profile.toml"),
     ("[mapper]\nedge_rays = 1.5\n", "edge_rays is a share"),
-    ("[mapper]\nedge_rays = 0.5\ntexture_rays = 0.6\n", "texture_rays is a share"),
+    ("[train]\ncarve_behind = false\n", "unknown key 'carve_behind'"),  # deleted (D49-1)
     ("[mapper]\nedge_max_incidence = 90.0\n", r"edge_max_incidence must be in \[0, 90\)"),
 ])
 def test_bad_profiles_are_named(tmp_path, text, msg):

@@ -12,8 +12,8 @@ import pytest
 from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.eval.metrics import psnr
 from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.field import FieldConfig
-from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.voxels import VoxelConfig
 
 LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
@@ -22,9 +22,9 @@ LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mes
 
 
 def test_nothing_to_train_on_before_a_keyframe_or_when_turned_off(tiny_scene):
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     assert m.train_between_frames() is None  # no field, no keyframes
-    off = Mapper(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, train_between_frames=False)))
+    off = MapEngine(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, train_between_frames=False)))
     seq = ReplicaSequence(tiny_scene)
     off.process(seq[0])
     assert off.train_between_frames() is None and off.iterations["between_frames"] == 0
@@ -37,7 +37,7 @@ def test_training_between_frames_improves_the_map(tiny_scene):
     held = seq.heldout[len(seq.heldout) // 2]
     scores = {}
     for extra in (0, 4):
-        m = Mapper(LEAN)
+        m = MapEngine(LEAN)
         for f in seq:
             m.process(f)
             for _ in range(extra):
@@ -54,7 +54,7 @@ def test_live_replay_skips_what_it_cannot_keep_up_with(tiny_scene):
     """A camera faster than integration: the ingest queue overflows, older frames are skipped, every
     frame is accounted for once and the newest one is never the one skipped."""
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     results = map_sequence(seq, m, camera_hz=2000.0, progress_every=0)
     skipped = [r for r in results if r.reason == "queue_full"]
     mapped = [r for r in results if r.mapped]
@@ -69,7 +69,7 @@ def test_live_replay_integrates_every_frame_trains_apart_and_settles(tiny_scene)
     the training thread, ``between_frames``), training goes on after the last frame, and a mark is
     called with the replay's time at its place, the last frame's after every frame."""
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     seen = []
     results = map_sequence(seq, m, frames=6, camera_hz=5.0, settle_s=0.6, progress_every=0,
                            marks=[("last", LAST_FRAME), ("half", 0.5)],
@@ -81,12 +81,12 @@ def test_live_replay_integrates_every_frame_trains_apart_and_settles(tiny_scene)
     assert l1 == "half" and 0.5 <= t1 < 1.0 and f1 == n1 < 6
     assert l2 == "last" and t2 >= 1.0 and n2 == f2 == 6
     with pytest.raises(ValueError):
-        map_sequence(seq, Mapper(LEAN), camera_hz=0.0)
+        map_sequence(seq, MapEngine(LEAN), camera_hz=0.0)
 
 
 def test_inline_replay_trains_each_frame_and_between_frames(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     results = map_sequence(seq, m, frames=4, camera_hz=4.0, settle_s=0.5, progress_every=0, inline=True)
     assert sorted(r.frame_id for r in results) == list(range(4)) and results[-1].mapped
     mapped = sum(r.mapped for r in results)
@@ -96,10 +96,10 @@ def test_inline_replay_trains_each_frame_and_between_frames(tiny_scene):
 def test_replay_counts_survive_a_checkpoint(tiny_scene):
 
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     m.process(seq[0])
     m.train_between_frames()
     meta, arrays = m.state_dict()
-    r = Mapper.from_state_dict(LEAN, meta, arrays)
+    r = MapEngine.from_state_dict(LEAN, meta, arrays)
     assert r.iterations == m.iterations == {"frame": LEAN.mapper.iterations, "between_frames": 1}
     assert np.isfinite(r.train_between_frames()["loss"])

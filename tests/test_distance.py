@@ -8,8 +8,8 @@ import numpy as np
 from h3edge.geometry.camera import Intrinsics
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.distance import FREE, INSIDE, NEAR, UNKNOWN, distance_slice, signed_distance
+from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
-from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 
 
 def test_free_space_is_only_where_rays_passed():
@@ -38,7 +38,7 @@ def test_free_space_is_only_where_rays_passed():
 
 def test_signed_distance_and_slice_on_a_mapped_scene(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512)))
+    m = MapEngine(MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512)))
     for i in range(0, len(seq), 4):
         m.process(seq[i])
     view = m.view().frozen()
@@ -60,7 +60,7 @@ def test_signed_distance_and_slice_on_a_mapped_scene(tiny_scene):
     assert occ.shape == (80, 80) and {-1, 0} <= set(np.unique(occ)) <= {-1, 0, 100}
     assert np.isnan(dist[occ == -1]).all() and (dist[occ == 100] == 0).all()
     meta, arrays = m.state_dict()
-    r = Mapper.from_state_dict(m.settings, meta, arrays)
+    r = MapEngine.from_state_dict(m.settings, meta, arrays)
     assert len(r.free_space) == len(m.free_space) > 0
     # the live view's block meshes tile the whole mesh
     from h3edge.mapping.voxels import unpack

@@ -11,11 +11,12 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.frame_memory import frame_at, png_bomb, splice
 from h3edge.apps.demo import ServiceProcess, wait_drained
-from h3edge.bench.frame_memory import frame_at, png_bomb, splice
-from h3edge.io.protocol import FrameMessage, PoseMessage, encode_frame, encode_pose
+from h3edge.io.protocol import FrameMessage, Keys, PoseMessage, encode_frame, encode_pose
 from h3edge.io.replica import ReplicaSequence
-from h3edge.serving.transport import Keys, RemoteError, open_session, query, wait_for_service
+from h3edge.io.zenoh_session import open_session
+from h3edge.serving.client import RemoteError, query, wait_for_service
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
 KEYS = Keys.for_map("hostile")

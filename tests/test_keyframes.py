@@ -114,7 +114,7 @@ def test_byte_cap_evicts_least_informative_never_newest():
 def test_stored_frame_draws_every_valid_pixel_and_only_those():
     """A keyframe trains on its whole view: over many draws every valid pixel comes up, uniformly,
     with its own colour and depth (a subset stored once would leave the rest of the view unseen by
-    every later iteration: on real data the texture over-fits it, docs/continuous_training.md)."""
+    every later iteration: on real data the texture over-fits it, research/continuous_training.md)."""
     kf, color, depth = _stored()
     valid = np.flatnonzero(depth.reshape(-1) > 0)
     assert kf.n_valid == len(valid)
@@ -128,35 +128,6 @@ def test_stored_frame_draws_every_valid_pixel_and_only_those():
     assert np.abs(z - depth.reshape(-1)[pix]).max() <= kf.depth_unit / 2 + 1e-6
     assert kf.depth_unit <= 7.0 / 65535 + 1e-9
     assert len(kf.draw(0, rng)[0]) == 0
-
-
-def test_textured_draw_takes_only_and_every_textured_valid_pixel():
-    """``draw_textured``: pixels whose colour gradient exceeds the threshold and whose depth is valid,
-    uniformly over them; a frame without such pixels gives none (the caller draws the rest
-    uniformly); the packed mask is kept with the frame (1 bit a pixel, counted in ``nbytes``)."""
-    from h3edge.geometry.camera import Intrinsics
-    from h3edge.mapping.gradient import color_gradient
-    from h3edge.mapping.keyframes import StoredFrame
-
-    rng = np.random.default_rng(0)
-    h, w = 30, 40
-    depth = np.full((h, w), 2.0, np.float32)  # one plane: no occlusion edge masks the gradient
-    depth[:5] = 0  # a hole (its rim is an edge: no texture there)
-    color = np.full((h, w, 3), 128, np.uint8)
-    color[:, w // 2:] = rng.integers(0, 256, (h, w - w // 2, 3), dtype=np.uint8)  # textured right half
-    kf = StoredFrame.of(color, depth, np.eye(4), Intrinsics(w, h, 30.0, 30.0, w / 2, h / 2))
-    g = color_gradient(color, kf.depth, 0.05)
-    want = np.flatnonzero(((g > 0.2) & (kf.depth > 0)).reshape(-1))
-    assert 0.3 < len(want) / (depth > 0).sum() < 0.6  # about the textured half
-    before = kf.nbytes
-    draw = np.random.default_rng(2)
-    pix, rgb, z = (np.concatenate(a) for a in zip(*(kf.draw_textured(len(want), 0.2, 0.05, draw) for _ in range(300))))
-    assert len(pix) == 300 * len(want) and np.isin(pix, want).all()
-    counts = np.bincount(pix, minlength=depth.size)[want]
-    assert counts.min() > 0 and counts.std() / counts.mean() < 0.15
-    assert np.array_equal(rgb, color.reshape(-1, 3)[pix])
-    assert kf.nbytes - before == (depth.size + 7) // 8
-    assert len(kf.draw_textured(50, 1e9, 0.05, np.random.default_rng(3))[0]) == 0  # nothing that textured
 
 
 def test_stored_frame_without_depth_draws_nothing():

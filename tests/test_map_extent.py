@@ -12,8 +12,8 @@ import torch
 from h3edge.eval.metrics import psnr
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping import mesh as mesh_mod
+from h3edge.mapping.engine import MapEngine
 from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
-from h3edge.mapping.mapper import Mapper
 from h3edge.mapping.raymarch import PriorLookup
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap, pack, unpack
 from tests.test_mapper import LEAN
@@ -36,7 +36,7 @@ def _held_out_quality(m, seq, offset=np.zeros(3)):
 def small_cube_map(tiny_scene):
     """The tiny scene mapped with a reference cube of 0.5 m: nearly all of it lies outside."""
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, extent=0.5)))
+    m = MapEngine(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, extent=0.5)))
     results = [m.process(f) for f in seq]
     return seq, m, results
 
@@ -56,7 +56,7 @@ def test_a_scene_larger_than_the_reference_cube_maps_whole(small_cube_map):
 def test_a_far_first_frame_does_not_fix_the_map(tiny_scene):
     """A valid first frame 100 m from the rest maps where it is; the later frames map as usual."""
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     far = _shifted(seq[0], np.array([100.0, -60.0, 20.0]))
     assert m.process(dataclasses.replace(far, timestamp=seq[0].timestamp - 1.0)).mapped
     results = [m.process(f) for f in seq]
@@ -74,7 +74,7 @@ def test_a_far_first_frame_does_not_fix_the_map(tiny_scene):
 
 def test_an_absurd_first_pose_is_refused_and_places_nothing(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     r = m.process(_shifted(seq[0], np.array([1e9, 0.0, 0.0])))
     assert not r.mapped and m.dropped == {"bad_pose": 1} and "max_position" in r.reason
     assert m.field is None and len(m.voxels) == 0
@@ -86,7 +86,7 @@ def test_a_translated_world_maps_the_same(tiny_scene):
     """World coordinates 300 m from the origin: the same scene, the same quality."""
     seq = ReplicaSequence(tiny_scene)
     offset = np.array([300.0, -200.0, 50.0])
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     assert all(m.process(_shifted(f, offset)).mapped for f in seq)
     coverage, depth_err, p = _held_out_quality(m, seq, offset)
     assert coverage > 0.9 and depth_err < 0.02 and p > 15.0

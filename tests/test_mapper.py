@@ -11,8 +11,8 @@ import torch
 from h3edge.eval.metrics import psnr
 from h3edge.geometry.camera import PIXEL_CENTER_OFFSET, Intrinsics, look_at, pixel_rays_world
 from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, unpack
 
@@ -24,7 +24,7 @@ LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=1024, me
 @pytest.fixture(scope="module")
 def mapped(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     results = [m.process(f) for f in seq]
     return seq, m, results
 
@@ -58,7 +58,7 @@ def test_uniform_texture_variant(tiny_scene):
     from h3edge.mapping.texture_patterns import TextureConfig
 
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(dataclasses.replace(LEAN, texture=TextureConfig(quasi_heterogeneous=False),
+    m = MapEngine(dataclasses.replace(LEAN, texture=TextureConfig(quasi_heterogeneous=False),
                                    keyframes=KeyframeConfig(gradient_aided=False)))
     for f in list(seq)[:3]:
         assert m.process(f).mapped
@@ -81,7 +81,7 @@ def test_mesh_is_near_the_surface(mapped, tiny_scene):
 
 def test_bad_frames_are_dropped_and_the_map_is_untouched(mapped, tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     m.process(seq[0])
     m.process(seq[1])
     state = (len(m.voxels), m.voxels.priors.detach().clone(), m.field.geo_grid.table.detach().clone())
@@ -194,7 +194,7 @@ def test_a_frame_that_allocates_nothing_is_dropped_not_crashed():
     color = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
     sparse = np.zeros((24, 32), np.float32)
     sparse[::6, ::6] = rng.uniform(0.5, 4.0, (4, 6))  # 24 scattered points: no voxel gets 3
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     r = m.process(Frame(0, 0.0, color, sparse, np.eye(4), intr))
     assert not r.mapped and m.dropped == {"no_voxels": 1} and m.train_between_frames() is None
     r = m.process(Frame(1, 0.1, color, np.full((24, 32), 2.0, np.float32), np.eye(4), intr))
@@ -204,10 +204,10 @@ def test_a_frame_that_allocates_nothing_is_dropped_not_crashed():
 def test_ray_tables_are_a_bounded_counted_cache(tiny_scene):
     """Frames whose intrinsics differ slightly each time keep at most RAY_TABLES ray tables, and
     their bytes are in the memory stats (issue 16, item 5)."""
-    from h3edge.mapping.mapper import RAY_TABLES
+    from h3edge.mapping.engine import RAY_TABLES
 
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(LEAN)
+    m = MapEngine(LEAN)
     for k in range(RAY_TABLES + 3):
         f = seq[k]
         f.intrinsics = dataclasses.replace(f.intrinsics, fx=f.intrinsics.fx + 1e-4 * k)
@@ -224,7 +224,7 @@ def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
 
     seq = ReplicaSequence(tiny_scene)
     settings = dataclasses.replace(LEAN, train=TrainConfig(surface_color_points=600))
-    m = Mapper(settings)
+    m = MapEngine(settings)
     f = seq[0]
     assert m.process(f).mapped
     current, _ = m._prepare(f)
@@ -244,30 +244,6 @@ def test_surface_color_points_lie_on_the_measured_surface(tiny_scene):
     assert float(surface_color_loss(m.field, m.voxels, rays)) < 0.7 * before
 
 
-def test_surface_sdf_points_pull_the_zero_level_to_the_measured_surface(tiny_scene):
-    """``losses.surface_sdf``: the surface colour points also take SDF = 0 at their measured surface.
-    Trained on the same batch, the map with the term ends with its zero level nearer those points
-    than the map without it (0, the paper's, leaves the loss out of the step)."""
-    from h3edge.mapping.trainer import TrainConfig, surface_sdf_loss
-
-    seq = ReplicaSequence(tiny_scene)
-    f = seq[0]
-    ends = {}
-    for weight in (0.0, 50000.0):
-        settings = dataclasses.replace(LEAN, train=TrainConfig(surface_color_points=600),
-                                       losses=dataclasses.replace(LEAN.losses, surface_sdf=weight))
-        m = Mapper(settings)
-        assert m.process(f).mapped
-        current, _ = m._prepare(f)
-        rays = m._sample_rays([current, m.keyframes.keyframes[0].payload])
-        before = float(surface_sdf_loss(m.field, m.voxels, rays, m.voxels.cfg.truncation))
-        for _ in range(30):
-            losses = m._step(rays, "frame")
-        assert (losses["surface_sdf"] > 0) == (weight > 0)
-        ends[weight] = float(surface_sdf_loss(m.field, m.voxels, rays, m.voxels.cfg.truncation)) / before
-    assert ends[50000.0] < 0.5 * ends[0.0], ends
-
-
 def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     """``mapper.edge_rays``: that share of each frame's rays, keyframes' included, is drawn among the
     far side of its depth edges (the background beside a silhouette), with ``edge_rays_near_too``
@@ -277,7 +253,7 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
     settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.5, edge_rays_radius=4,
                                                                      edge_rays_near_too=False))
-    m = Mapper(settings)
+    m = MapEngine(settings)
     f = seq[0]
     assert m.process(f).mapped
     current, _ = m._prepare(f)
@@ -294,7 +270,8 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     expected = 0.5 + 0.5 * far.sum() / (current.depth > 0).sum()
     assert abs(on_far.mean() - expected) < 4 * np.sqrt(expected * (1 - expected) / n), (on_far.mean(), expected)
     assert np.allclose(rays.depth.numpy(), current.depth.reshape(-1)[pix], atol=2e-4)
-    both = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(settings.mapper, edge_rays_near_too=True)))
+    near_too = dataclasses.replace(settings.mapper, edge_rays_near_too=True)
+    both = MapEngine(dataclasses.replace(settings, mapper=near_too))
     assert both.process(f).mapped
     edges = np.zeros(far.shape, bool)
     edges[both.keyframes.keyframes[0].payload.edge_pixels(4, jump, step, True)] = True
@@ -304,45 +281,11 @@ def test_edge_rays_come_from_beside_the_silhouettes(tiny_scene):
     on_edges = edges[_ray_pixels(near_rays, f)].mean()
     sigma = np.sqrt(expected * (1 - expected) / len(near_rays.depth))
     assert abs(on_edges - expected) < 4 * sigma, (on_edges, expected)
-    uniform = Mapper(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.0)))
+    uniform = MapEngine(dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.0)))
     assert uniform.process(f).mapped
     plain = uniform._sample_rays([uniform._prepare(f)[0]])
     share = far.sum() / (current.depth > 0).sum()  # the paper's uniform draw: edges at their share
     assert abs(far[_ray_pixels(plain, f)].mean() - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth))
-
-
-def test_texture_rays_come_from_textured_pixels(tiny_scene):
-    """``mapper.texture_rays``: that share of each frame's rays is drawn among its valid pixels whose
-    colour gradient exceeds ``texture.tr_weak``, the rest uniformly (edge rays off here); 0 keeps
-    the paper's uniform draw."""
-    from h3edge.mapping.gradient import color_gradient
-
-    seq = ReplicaSequence(tiny_scene)
-    settings = dataclasses.replace(LEAN, mapper=dataclasses.replace(LEAN.mapper, edge_rays=0.0, texture_rays=0.5))
-    m = Mapper(settings)
-    f = seq[0]
-    assert m.process(f).mapped
-    current, _ = m._prepare(f)
-    stored = m.keyframes.keyframes[0].payload
-    g = color_gradient(current.color, current.depth, m.gradient_jump(f.intrinsics))
-    textured = ((g > settings.texture.tr_weak)
-                & (current.depth > 0)).reshape(-1)
-    share = textured.sum() / (current.depth > 0).sum()
-    assert 0.01 < share < 0.8
-    for frames in ([current], [current, stored]):
-        rays = m._sample_rays(frames)
-        on = textured[_ray_pixels(rays, f)].mean()
-        expected = 0.5 + 0.5 * share
-        assert abs(on - expected) < 4 * np.sqrt(expected * (1 - expected) / len(rays.depth)), (on, expected)
-    odd = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(
-        settings.mapper, rays_per_iteration=27, edge_rays=0.5, texture_rays=0.5)))  # 13.5 + 13.5 round to 28
-    assert odd.process(f).mapped
-    assert len(odd._sample_rays([odd._prepare(f)[0]]).depth) == 27
-    uniform = Mapper(dataclasses.replace(settings, mapper=dataclasses.replace(settings.mapper, texture_rays=0.0)))
-    assert uniform.process(f).mapped
-    plain = uniform._sample_rays([uniform._prepare(f)[0]])
-    on = textured[_ray_pixels(plain, f)].mean()
-    assert abs(on - share) < 4 * np.sqrt(share * (1 - share) / len(plain.depth)), (on, share)
 
 
 def _ray_pixels(rays, f) -> np.ndarray:

@@ -157,7 +157,7 @@ def test_a_large_covered_surface_reads_covered_whatever_the_sample_count():
 def test_colour_regions_split_the_valid_pixels():
     """The colour-error regions are disjoint and cover the valid pixels: the band follows the depth
     step, a wrong render off the band is ``depth_off``, texture is where the colour changes."""
-    from h3edge.bench.color_regions import regions
+    from benchmarks.color_regions import regions
 
     depth = np.full((48, 64), 2.0, np.float32)
     depth[:, :32] = 1.0  # a step at column 32
@@ -178,7 +178,7 @@ def test_colour_regions_split_the_valid_pixels():
 def test_colour_regions_report_each_view_beside_the_pooled_figures():
     """Per view, the PSNR of the whole image and of each region (``per_view``), whereas the regions'
     PSNR pools the pixels of all views: one bad view dominates the pooled figure, not every view's."""
-    from h3edge.bench.color_regions import summarise
+    from benchmarks.color_regions import summarise
 
     def view(sse_h: float, sse_t: float) -> dict:
         count = {"edge": 10, "depth_off": 0, "texture": 20, "rest": 70}

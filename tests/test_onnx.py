@@ -9,8 +9,8 @@ import torch
 
 from h3edge.geometry.camera import backproject
 from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig, OrtMLP, export_decoders, mlp_to_onnx
 from h3edge.mapping.voxels import VoxelConfig
 
@@ -53,7 +53,7 @@ def test_unsupported_layer_is_refused():
 @pytest.fixture(scope="module")
 def mapped(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(SETTINGS)
+    m = MapEngine(SETTINGS)
     for f in list(seq)[:12]:
         m.process(f)
     return seq, m

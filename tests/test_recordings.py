@@ -64,7 +64,7 @@ def test_scannet_exports_resize_colour_and_skip_lost_poses(tiny_scene, tmp_path)
     assert f.color.shape == (seq.intrinsics.height, seq.intrinsics.width, 3) and f.intrinsics == seq.intrinsics
     assert np.abs(f.color.astype(int) - seq[0].color.astype(int)).mean() < 6  # JPEG + resize round trip
     assert np.allclose(sc[2].pose, seq[3].pose)  # frame 2 left out
-    from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
+    from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 
-    m = Mapper(MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=256)))
+    m = MapEngine(MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=256)))
     assert all(m.process(sc[i]).mapped for i in range(2))

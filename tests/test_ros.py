@@ -190,8 +190,11 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
     signed-distance query on the observed surface answered; a slice; the Rerun view recorded."""
     from h3edge.apps.demo import wait_drained
     from h3edge.apps.viewer import run_viewer
+    from h3edge.io.protocol import Keys
     from h3edge.io.replica import ReplicaSequence
-    from h3edge.serving.transport import Keys, open_session, publish_ros_sequence, query, read_npz, wait_for_service
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.client import query, read_npz, wait_for_service
+    from h3edge.sim.publish import publish_ros_sequence
 
     svc, state = ros_service
     keys = Keys.for_map("ros")
@@ -252,7 +255,9 @@ def test_the_whole_ros_path_on_loopback(ros_service, tiny_scene, tmp_path):
 def test_save_load_and_export_at_runtime(ros_service):
     """Operator queries: save to a name, load it back into the running service, export a mesh; names
     that leave the state directory are refused."""
-    from h3edge.serving.transport import Keys, RemoteError, open_session, query
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.client import RemoteError, query
 
     svc, state = ros_service
     keys = Keys.for_map("ros")
@@ -279,10 +284,12 @@ def test_rmw_zenoh_keys_reach_an_in_process_service(tiny_scene, tmp_path):
     """The rmw_zenoh key layout (<domain>/<topic>/<dds type>/<hash>) end to end, in one process."""
     from h3edge.apps.demo import free_port
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.io.zenoh_session import open_session, zenoh_config
+    from h3edge.mapping.engine import MapperConfig, MapSettings
     from h3edge.mapping.field import FieldConfig
-    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.serving.server import ZenohServer
     from h3edge.serving.service import MapService, ServiceConfig
-    from h3edge.serving.transport import ZenohServer, open_session, publish_ros_sequence, zenoh_config
+    from h3edge.sim.publish import publish_ros_sequence
 
     cfg = RosConfig(key_style="rmw_zenoh", domain=7, base_to_camera=EXTRINSIC)
     settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128),

@@ -15,12 +15,14 @@ import zenoh
 from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.eval.evaluate import EvalConfig, evaluate_geometry
 from h3edge.eval.metrics import psnr
-from h3edge.io.protocol import FrameMessage, PoseMessage, decode_frame, encode_frame, encode_pose, pose_to_json
+from h3edge.io.protocol import FrameMessage, Keys, PoseMessage, decode_frame, encode_frame, encode_pose, pose_to_json
 from h3edge.io.replica import ReplicaSequence
+from h3edge.io.zenoh_session import open_session
+from h3edge.mapping.map_file import read_checkpoint
 from h3edge.profiling.report import load_document
 from h3edge.profiling.timing import read_durations
-from h3edge.serving.checkpoint_file import read_checkpoint
-from h3edge.serving.transport import Keys, RemoteError, open_session, publish_sequence, query, wait_for_service
+from h3edge.serving.client import RemoteError, query, wait_for_service
+from h3edge.sim.publish import publish_sequence
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
 KEYS = Keys.for_map("test")
@@ -105,6 +107,62 @@ def test_render_query(served):
     assert psnr(msg.color, held.color) > 14.0
 
 
+def test_typed_client_answers_every_query(served):
+    """``h3edge.Client`` over the same session: typed answers, the service's refusals as RemoteError
+    with its message, and the render equal to the raw query's."""
+    from h3edge import Client
+
+    _, session, seq, *_ = served
+    client = Client("test", session=session, timeout=120)
+    assert client.status()["frames"]["mapped"] > 0 and "table" in client.profile()
+    held = seq.heldout[1]
+    color, depth = client.render(held.pose, intrinsics=held.intrinsics)
+    assert color.shape == held.color.shape and color.dtype == np.uint8 and depth.dtype == np.float32
+    valid = (held.depth > 0) & (depth > 0)
+    assert valid.mean() > 0.8 and np.median(np.abs(depth[valid] - held.depth[valid])) < 0.03
+    assert client.mesh("glb", resolution=2)[:4] == b"glTF"
+    pts = np.array([held.pose[:3, 3], held.pose[:3, 3] + [0.0, 0.0, 0.1]])
+    d = client.signed_distance(pts, gradient=True)
+    assert d.sdf.shape == (2,) and d.state.dtype == np.uint8 and d.gradient.shape == (2, 3)
+    sl = client.slice(float(held.pose[2, 3]), (0.0, 0.0), (2.0, 1.0), 0.1)
+    assert sl.occupancy.shape == (10, 20) and sl.resolution == pytest.approx(0.1)
+    with pytest.raises(RemoteError, match="format must be ply, glb or obj"):
+        client.mesh("stl")
+    client.close()  # a session it was handed stays open
+    assert json.loads(query(session, KEYS.status))["mapper_alive"]
+
+
+def test_query_command(served, tmp_path):
+    """``h3edge query`` (the CLI on the typed client) against the running service: status, a render
+    written as PNGs, signed distance from a points file, a slice saved as .npz, and a refusal as one
+    line with exit status 1."""
+    import subprocess
+    import sys
+
+    svc, _, seq, *_ = served
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "h3edge", "query", *args, "--map-id", "test", "--connect",
+                               svc.endpoint, "--no-multicast", "--timeout", "120"], capture_output=True, text=True,
+                              timeout=300)
+
+    p = cli("status")
+    assert p.returncode == 0 and json.loads(p.stdout)["frames"]["mapped"] > 0, p.stderr
+    t = seq.heldout[1].pose[:3, 3]
+    p = cli("render", "--pose", ",".join(str(x) for x in [*t, 0, 0, 0, 1]), "--out", str(tmp_path / "r"))
+    assert p.returncode == 0 and (tmp_path / "r_color.png").exists() and (tmp_path / "r_depth.png").exists(), p.stderr
+    np.save(tmp_path / "pts.npy", np.array([t, t + 0.1]))
+    p = cli("sdf", "--points", str(tmp_path / "pts.npy"), "--gradient")
+    assert p.returncode == 0 and len(json.loads(p.stdout.splitlines()[0])["sdf"]) == 2, p.stderr
+    p = cli("slice", "--z", str(t[2]), "--aabb", "0,0,2,1", "--cell", "0.1", "--out", str(tmp_path / "s.npz"))
+    assert p.returncode == 0, p.stderr
+    with np.load(tmp_path / "s.npz") as z:
+        assert z["occupancy"].shape == (10, 20) and "meta" in z.files
+    p = cli("mesh", "--resolution", "1000", "--out", str(tmp_path / "m.ply"))
+    assert p.returncode == 1 and "error from the service: resolution must be" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+
+
 @pytest.mark.parametrize("request_, match", [
     ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 5000, "height": 5000}, "exceeds"),
     ({"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 1228800, "height": 1}, "1..16384"),  # at the pixel cap
@@ -133,10 +191,10 @@ def test_profile_query(served):
 
     svc, session, *_ = served
     p = json.loads(query(session, KEYS.profile))
-    from h3edge.serving.transport import fetch_profile
+    from h3edge.serving.client import Client
 
     # what `h3edge profile report zenoh:test` reads
-    live = load_document("zenoh:test", lambda mid: fetch_profile(svc.client_config(), mid))
+    live = load_document("zenoh:test", lambda mid: Client(mid, svc.client_config(), timeout=10.0).profile())
     assert live["profile"] == "service-test" and "pose association" in report(live)
     assert live["inference"]["mapping_device"] == "cpu"
     if live["inference"]["decoders"] == "onnx":

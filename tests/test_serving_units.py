@@ -24,8 +24,8 @@ from h3edge.io.protocol import (
     encode_frame,
     encode_pose,
 )
+from h3edge.mapping.map_file import CheckpointError, read_checkpoint, write_checkpoint
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.checkpoint_file import CheckpointError, read_checkpoint, write_checkpoint
 from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.systemd import Notifier
 
@@ -275,7 +275,7 @@ def test_deploy_plan_sizes_the_unit_and_refuses_what_does_not_fit(tmp_path):
 
 
 def test_unwritable_state_directory_is_a_one_line_error(tmp_path):
-    from h3edge.serving.checkpoint_file import CheckpointError, check_writable
+    from h3edge.mapping.map_file import CheckpointError, check_writable
 
     check_writable(tmp_path / "a" / "b")  # created
     (tmp_path / "file").write_text("x")
@@ -292,8 +292,8 @@ def test_far_future_stamps_are_refused_and_later_frames_map(tmp_path):
     them still map (issue 16, item 1)."""
     import time
 
+    from h3edge.mapping.engine import MapperConfig, MapSettings
     from h3edge.mapping.field import FieldConfig
-    from h3edge.mapping.mapper import MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
     from h3edge.serving.service import MapService, ServiceConfig
 
@@ -334,9 +334,9 @@ def test_unsafe_map_ids_are_refused(bad, tmp_path):
     """A map id is one file name under the state directory and one zenoh key chunk: '..' would
     write outside the state directory, '*' would be a wildcard (issue 16, item 8)."""
     from h3edge.errors import InputError
-    from h3edge.mapping.mapper import MapSettings
+    from h3edge.io.protocol import Keys
+    from h3edge.mapping.engine import MapSettings
     from h3edge.serving.service import MapService, ServiceConfig
-    from h3edge.serving.transport import Keys
 
     with pytest.raises(InputError, match="map id"):
         Keys.for_map(bad)
@@ -350,10 +350,10 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     (and says so); scratch files of a killed write are removed at start; a final checkpoint that
     fails makes stop() report it (the daemon then exits non-zero) (issue 16, item 7)."""
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.engine import MapperConfig, MapSettings
     from h3edge.mapping.field import FieldConfig
-    from h3edge.mapping.mapper import MapperConfig, MapSettings
+    from h3edge.mapping.map_file import previous_path
     from h3edge.mapping.voxels import VoxelConfig
-    from h3edge.serving.checkpoint_file import previous_path
     from h3edge.serving.service import MapService, ServiceConfig
 
     settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128),
@@ -422,7 +422,7 @@ def test_image_bombs_are_refused_from_their_header(kind):
 def test_overloaded_queries_get_a_busy_error_reply():
     """A query that finds its queue full is answered with an error saying busy / retry, not an
     empty reply the client reads as 'is the service running?' (issue 16, item 5)."""
-    from h3edge.serving.transport import ZenohServer
+    from h3edge.serving.server import ZenohServer
 
     class FakeQuery:
         key_expr = "h3edge/m/render"
@@ -454,7 +454,7 @@ def test_heavy_queries_past_their_deadline_get_an_error_reply():
     error, not worked on after its client gave up (issue 16, item 5)."""
     import time as time_
 
-    from h3edge.serving.transport import ZenohServer
+    from h3edge.serving.server import ZenohServer
 
     class FakeQuery:
         key_expr = "h3edge/m/mesh"
@@ -495,11 +495,11 @@ def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):
     nothing (issue 16, item 6)."""
     from h3edge.errors import QueryError
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping.engine import MapperConfig, MapSettings
     from h3edge.mapping.field import FieldConfig
-    from h3edge.mapping.mapper import MapperConfig, MapSettings
     from h3edge.mapping.voxels import VoxelConfig
+    from h3edge.serving.server import ZenohServer
     from h3edge.serving.service import MapService, ServiceConfig
-    from h3edge.serving.transport import ZenohServer
 
     settings = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=128), voxels=VoxelConfig(min_points=3),
                            field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))

@@ -1,4 +1,4 @@
-"""Mapper state round trip (what checkpoints hold), frozen query snapshots, keyframe pixel subsets."""
+"""MapEngine state round trip (what checkpoints hold), frozen query snapshots, keyframe pixel subsets."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from h3edge.io.replica import ReplicaSequence
+from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.field import FieldConfig
-from h3edge.mapping.mapper import Mapper, MapperConfig, MapSettings
 from h3edge.mapping.voxels import VoxelConfig
 
 SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
@@ -22,19 +22,19 @@ SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512,
 @pytest.fixture(scope="module")
 def half_mapped(tiny_scene):
     seq = ReplicaSequence(tiny_scene)
-    m = Mapper(SETTINGS)
+    m = MapEngine(SETTINGS)
     for f in list(seq)[:20]:
         assert m.process(f).mapped
     return seq, m
 
 
-def _params(m: Mapper) -> dict[str, torch.Tensor]:
+def _params(m: MapEngine) -> dict[str, torch.Tensor]:
     out = {k: v.detach().clone() for k, v in m.field.state_dict().items()}
     out["priors"] = m.voxels.priors.detach().clone()
     return out
 
 
-def _clone(m: Mapper) -> Mapper:
+def _clone(m: MapEngine) -> MapEngine:
     """A deep copy of a mapper (the OpenCV line detector and numba kernels are not copyable)."""
     det, kerns = m.patterns._detector, [(g, g._kern) for g in m.field.hash_grids()]
     m.patterns._detector = None
@@ -58,15 +58,13 @@ def test_keyframes_keep_whole_images(half_mapped):
     clean = m.clean_depth(frame.depth, frame.intrinsics)
     assert np.array_equal(kf.depth > 0, clean > 0) and kf.n_valid == np.count_nonzero(clean)
     assert np.abs(kf.depth - clean).max() <= kf.depth_unit / 2 + 1e-6 < 1e-4
-    # and the depth image pooled to 4 x 4 blocks, for the cross-view free-space test (train.carve_behind)
-    assert kf.pooled is not None and kf.pooled.depth.shape == (h // 4, w // 4)
-    assert kf.nbytes <= 5 * h * w + 4 * (h // 4) * (w // 4) + 2 * 8 * 16  # images, pooled depth, poses
+    assert kf.nbytes <= 5 * h * w + 2 * 8 * 16  # images, poses
     # read-only, and the captured state holds the arrays themselves (no second copy of the keyframes)
     assert not kf.color.flags.writeable and not kf.depth_q.flags.writeable
     _, arrays = m.state_dict()
     last = len(m.keyframes.keyframes) - 1
     assert arrays[f"kf/color/{last}"] is kf.color and arrays[f"kf/depth_q/{last}"] is kf.depth_q
-    restored = Mapper.from_state_dict(SETTINGS, *m.state_dict()).keyframes.keyframes[-1].payload
+    restored = MapEngine.from_state_dict(SETTINGS, *m.state_dict()).keyframes.keyframes[-1].payload
     assert np.array_equal(restored.color, kf.color) and np.array_equal(restored.depth_q, kf.depth_q)
     assert restored.depth_unit == kf.depth_unit and restored.n_valid == kf.n_valid
 
@@ -77,15 +75,15 @@ def test_restored_mapper_continues_identically(half_mapped):
     meta, arrays = m.state_dict()
     # sparse tables: far fewer rows stored than the tables hold
     assert len(arrays["grid/geo/rows"]) < len(m.field.geo_grid.table)
-    r = Mapper.from_state_dict(SETTINGS, meta, arrays)
+    r = MapEngine.from_state_dict(SETTINGS, meta, arrays)
     a, b = _params(m), _params(r)
     for k in a:
         assert torch.equal(a[k], b[k]), k
     assert r.frames_mapped == m.frames_mapped and len(r.voxels) == len(m.voxels)
     assert [k.frame_id for k in r.keyframes.keyframes] == [k.frame_id for k in m.keyframes.keyframes]
     for a_kf, b_kf in zip(m.keyframes.keyframes, r.keyframes.keyframes):
-        assert np.array_equal(a_kf.payload.pooled.depth, b_kf.payload.pooled.depth)
-        assert a_kf.payload.pooled.stride == b_kf.payload.pooled.stride
+        assert np.array_equal(a_kf.payload.depth_q, b_kf.payload.depth_q)
+        assert np.array_equal(a_kf.payload.color, b_kf.payload.color)
     # continue mapping from the restored state and from the original: the same map (the parallel
     # gradient scatter sums in a nondeterministic order, so "the same" is up to rounding noise)
     cont = _clone(m)
@@ -105,7 +103,7 @@ def test_restore_refuses_other_configuration(half_mapped):
     meta, arrays = m.state_dict()
     other = dataclasses.replace(SETTINGS, field=dataclasses.replace(SETTINGS.field, sdf_hidden=32))
     with pytest.raises(ValueError, match="shape"):
-        Mapper.from_state_dict(other, meta, arrays)
+        MapEngine.from_state_dict(other, meta, arrays)
 
 
 def test_frozen_view_is_independent(half_mapped):
@@ -137,11 +135,11 @@ def test_state_from_before_whole_image_keyframes_keeps_the_map(half_mapped):
     old.update({"kf/pix": np.zeros(5 * n, np.int32), "kf/pix_offsets": np.arange(0, 5 * n + 1, 5),
                 "kf/rgb": np.zeros((5 * n, 3), np.uint8), "kf/rgb_offsets": np.arange(0, 5 * n + 1, 5),
                 "kf/depth": np.ones(5 * n, np.float32), "kf/depth_offsets": np.arange(0, 5 * n + 1, 5)})
-    r = Mapper.from_state_dict(SETTINGS, {**meta, "state_version": 1}, old)
+    r = MapEngine.from_state_dict(SETTINGS, {**meta, "state_version": 1}, old)
     assert r.keyframes.keyframes == [] and len(r.voxels) == len(m.voxels)
     a, b = _params(m), _params(r)
     assert all(torch.equal(a[k], b[k]) for k in a)
     f = list(seq)[20]
     assert r.process(f).mapped and len(r.keyframes.keyframes) == 1
     with pytest.raises(ValueError, match="state version 7"):
-        Mapper.from_state_dict(SETTINGS, {**meta, "state_version": 7}, arrays)
+        MapEngine.from_state_dict(SETTINGS, {**meta, "state_version": 7}, arrays)

@@ -347,9 +347,9 @@ def test_identity_block_can_leave_out_its_finest_levels():
 
 
 def test_level_mask_zeroes_one_level_of_one_block_and_restores():
-    """The texture-levels diagnostic (``h3edge.bench.texture_levels``) reads exactly one block's
+    """The texture-levels diagnostic (``benchmarks.texture_levels``) reads exactly one block's
     level as zero inside its context and the encoder as trained after it."""
-    from h3edge.bench.texture_levels import LevelMask, level_columns
+    from benchmarks.texture_levels import LevelMask, level_columns
 
     enc, _ = _encoder(TextureConfig(scaling_everywhere=True))
     ijk = np.array([[1, 1, 1], [2, 1, 1]])

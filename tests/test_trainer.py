@@ -3,11 +3,12 @@
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from h3edge.io import open_sequence
 from h3edge.mapping.field import Field, FieldConfig
-from h3edge.mapping.trainer import TrainConfig, free_depths_in_voxels, sample_depths, train_step
+from h3edge.mapping.trainer import LOSS_TERMS, TrainConfig, Trainer, free_depths_in_voxels, sample_depths
 from h3edge.mapping.volume_rendering import composite
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap
 from h3edge.sim.scene import ROOM_SIZE
@@ -51,6 +52,7 @@ def test_training_reduces_losses(tiny_scene):
             return float((out.depth[ok] - eval_rays.depth[ok]).abs().mean()), float(ok.float().mean())
 
     err0, _ = eval_error()
+    trainer = Trainer(cfg, 0.05, fld, voxels, opt, generator=g)
     hist, ended = [], np.zeros(len(voxels))
     for it in range(30):
         f = frames[it % 3]
@@ -58,7 +60,7 @@ def test_training_reduces_losses(tiny_scene):
         ok = rays.depth > 0
         vox = voxels.locate((rays.origins[ok] + rays.dirs[ok] * rays.depth[ok, None]).numpy())[0]
         ended += np.bincount(vox[vox >= 0], minlength=len(voxels))
-        hist.append(train_step(fld, voxels, rays, opt, cfg, 0.05, g))
+        hist.append(trainer.step(rays))
     # each step counts its rays in the voxels their measured surfaces fell in (VoxelMap.trained)
     assert ended.sum() > 0 and np.array_equal(voxels.trained, ended)
     err1, hit = eval_error()
@@ -66,6 +68,31 @@ def test_training_reduces_losses(tiny_scene):
     assert last < 0.5 * first["loss"]
     assert np.mean([h["rgb"] for h in hist[-5:]]) < first["rgb"]
     assert err1 < err0 and err1 < 0.02 and hit > 0.9
+
+
+def test_step_reports_each_term_and_their_weighted_sum(tiny_scene):
+    """A step's ``loss`` is the sum of ``LOSS_TERMS`` weighted by their ``LossWeights`` fields, each
+    term reported under its name (those with nothing to fit this step: 0); a weight set to 0 drops
+    its term from the sum but not from the report."""
+    seq = open_sequence(tiny_scene)
+    f = seq[0]
+    voxels = VoxelMap(VoxelConfig(min_points=3))
+    voxels.allocate(f.depth, f.intrinsics, f.pose)
+    fld = Field(FieldConfig(geo_log2_table=12, tex_log2_table=12, sdf_layers=2),
+                np.stack([np.zeros(3) - 0.5, ROOM_SIZE + 0.5]), 0.1)
+    opt = torch.optim.Adam(list(fld.sdf_mlp.parameters()) + list(fld.color_mlp.parameters()), lr=1e-2)
+    cfg = TrainConfig()
+    g = torch.Generator().manual_seed(0)
+    rays = rays_from_frame(f, torch.randint(0, f.depth.size, (512,), generator=g))
+    out = Trainer(cfg, 0.05, fld, voxels, opt, generator=g).step(rays)
+    names = [n for n, _ in LOSS_TERMS]
+    assert set(names) | {"loss", "hit_ratio", "carved"} == set(out)
+    assert out["loss"] == pytest.approx(sum(getattr(cfg.weights, n) * out[n] for n in names), rel=1e-5)
+    assert out["rgb"] > 0 and out["sdf"] > 0 and out["seen_free"] == 0  # no votes: nothing to fit there
+    no_rgb = dataclasses.replace(cfg, weights=dataclasses.replace(cfg.weights, rgb=0.0))
+    again = Trainer(no_rgb, 0.05, fld, voxels, opt, generator=g).step(rays)
+    assert again["rgb"] > 0
+    assert again["loss"] == pytest.approx(sum(getattr(no_rgb.weights, n) * again[n] for n in names), rel=1e-5)
 
 
 def test_free_space_samples_land_in_voxels(tiny_scene):

@@ -16,9 +16,10 @@ import threading
 import time
 
 from h3edge.config import Profile
+from h3edge.io.zenoh_session import open_session
+from h3edge.serving.server import ZenohServer
 from h3edge.serving.service import MapService
 from h3edge.serving.systemd import Notifier
-from h3edge.serving.transport import ZenohServer, open_session
 
 log = logging.getLogger(__name__)
 

@@ -67,7 +67,7 @@ class ServiceProcess:
                 time.sleep(0.2)
 
     def client_config(self):
-        from h3edge.serving.transport import zenoh_config
+        from h3edge.io.zenoh_session import zenoh_config
 
         return zenoh_config(None, "client", [self.endpoint], None, False)
 
@@ -93,7 +93,7 @@ class RemoteRenderer:
         self.session, self.keys, self.timeout = session, keys, timeout
 
     def render(self, intr, c2w) -> tuple[np.ndarray, np.ndarray]:
-        from h3edge.serving.transport import query
+        from h3edge.serving.client import query
 
         req = {"pose": pose_to_json(c2w), "width": intr.width, "height": intr.height,
                "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}, "raw": True}
@@ -103,7 +103,7 @@ class RemoteRenderer:
 
 def wait_drained(session, keys, timeout: float = 600.0) -> dict:
     """Wait until every received frame was mapped or dropped; returns the last status."""
-    from h3edge.serving.transport import query
+    from h3edge.serving.client import query
 
     end = time.monotonic() + timeout
     while True:
@@ -117,15 +117,11 @@ def wait_drained(session, keys, timeout: float = 600.0) -> dict:
 def run_demo(seq, profile: str, out: Path, rate: float = 2.0, map_id: str = "demo") -> int:
     from h3edge.config import load_profile
     from h3edge.eval.evaluate import evaluate, format_table
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
     from h3edge.profiling.timing import format_timings
-    from h3edge.serving.transport import (
-        Keys,
-        open_session,
-        publish_sequence,
-        query,
-        save_render_reply,
-        wait_for_service,
-    )
+    from h3edge.serving.client import query, save_render_reply, wait_for_service
+    from h3edge.sim.publish import publish_sequence
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

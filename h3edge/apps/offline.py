@@ -23,7 +23,7 @@ from h3edge.config import Profile
 from h3edge.eval.evaluate import evaluate, format_table
 from h3edge.io.sequence import Sequence, write_color, write_depth
 from h3edge.mapping.background import BackgroundTraining
-from h3edge.mapping.mapper import FrameResult, Mapper
+from h3edge.mapping.engine import FrameResult, MapEngine
 from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.profiling.timing import DurationLog, format_timings
 
@@ -52,25 +52,25 @@ class PausableClock:
 LAST_FRAME = -1.0  # a mark's time: when the last frame has been handled
 
 
-def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, stride: int = 1,
+def map_sequence(seq: Sequence, mapper: MapEngine, frames: int | None = None, stride: int = 1,
                  progress_every: int = 50, camera_hz: float | None = None, settle_s: float = 0.0,
                  queue_depth: int = 2, inline: bool = False, marks: list[tuple[str, float]] = (),
                  on_mark: Callable[[str, float, list], None] | None = None) -> list:
     """Feed every ``stride``-th frame (the first ``frames`` of them) to the mapper.
 
     ``camera_hz`` None: every frame, one after the other, as fast as the mapper goes (the paper's
-    fixed iterations per frame, :meth:`Mapper.process`). ``camera_hz`` F: a live replay, as the
+    fixed iterations per frame, :meth:`MapEngine.process`). ``camera_hz`` F: a live replay, as the
     service sees a camera: frame k arrives at k / F s of wall time; at most ``queue_depth`` arrived
     frames wait (older ones are skipped, a ``queue_full`` result, as the service's ingest queue drops
-    them); each frame taken is integrated (:meth:`Mapper.integrate`) while training runs on a thread
+    them); each frame taken is integrated (:meth:`MapEngine.integrate`) while training runs on a thread
     of its own (:class:`~h3edge.mapping.background.BackgroundTraining`), as the service runs it.
-    ``inline``: the service before that (:meth:`Mapper.process` per frame, one keyframe step whenever
+    ``inline``: the service before that (:meth:`MapEngine.process` per frame, one keyframe step whenever
     no frame waits). ``settle_s``: after the last frame, keep training that long (the robot
     standing still). ``marks``: (label, replay seconds) at which ``on_mark(label, t, results so far)``
-    is called with training paused, the map held (:meth:`Mapper.exclusive`) and the replay clock
+    is called with training paused, the map held (:meth:`MapEngine.exclusive`) and the replay clock
     stopped (an evaluation); a time of ``LAST_FRAME`` calls it when the last frame has been
     handled. Returns one
-    :class:`~h3edge.mapping.mapper.FrameResult` per frame, skipped ones included.
+    :class:`~h3edge.mapping.engine.FrameResult` per frame, skipped ones included.
     """
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     results = []
@@ -147,7 +147,7 @@ def map_sequence(seq: Sequence, mapper: Mapper, frames: int | None = None, strid
     return results
 
 
-def write_view_strips(mapper: Mapper, seq: Sequence, out: Path, views: int = 4) -> None:
+def write_view_strips(mapper: MapEngine, seq: Sequence, out: Path, views: int = 4) -> None:
     out.mkdir(parents=True, exist_ok=True)
     strips = []
     for i in np.linspace(0, len(seq) - 1, min(views, len(seq))).round().astype(int):
@@ -169,7 +169,7 @@ def run_offline(seq: Sequence, profile: Profile, out: Path, frames: int | None =
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = settings or profile.map_settings()
-    mapper = Mapper(settings)
+    mapper = MapEngine(settings)
     (out / "timings.jsonl").write_text("")
     durations = DurationLog(out / "timings.jsonl", max_bytes=1 << 40)  # every duration of the run
     mapper.timings.sink = durations

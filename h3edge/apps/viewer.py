@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from h3edge.io.protocol import decode_frame
-from h3edge.serving.transport import Keys, RemoteError, query
+from h3edge.io.protocol import Keys, decode_frame
+from h3edge.serving.client import Client, RemoteError
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,7 @@ class LiveViewer:
 
         self.rr, self.rec = rr, recording
         self.session, self.keys = session, keys
+        self.client = Client(keys.base.split("/", 1)[1], session=session, timeout=60.0)
         self.render_every_s = render_every_s
         self.trajectory: list[np.ndarray] = []
         self.blocks: dict[str, int] = {}  # block -> faces of its latest mesh
@@ -143,14 +144,10 @@ class LiveViewer:
             self._render()
 
     def _render(self) -> None:
-        from h3edge.io.protocol import pose_to_json
-
         stamp, pose, intr = self._latest
         small = intr.scaled(min(intr.width, 320), round(intr.height * min(intr.width, 320) / intr.width))
-        req = {"pose": pose_to_json(pose), "width": small.width, "height": small.height,
-               "intrinsics": {"fx": small.fx, "fy": small.fy, "cx": small.cx, "cy": small.cy}}
         try:
-            msg = decode_frame(query(self.session, self.keys.render, req, timeout=60))
+            color, depth = self.client.render(pose, intrinsics=small)
         except (RemoteError, TimeoutError) as e:
             log.warning("render: %s", e)
             return
@@ -160,8 +157,8 @@ class LiveViewer:
             self.rec.log("world/render", self.rr.Pinhole(image_from_camera=small.K,
                                                          resolution=[small.width, small.height],
                                                          camera_xyz=self.rr.ViewCoordinates.RDF))
-            self.rec.log("world/render/color", self.rr.Image(msg.color))
-            self.rec.log("world/render/depth", self.rr.DepthImage(msg.depth, meter=1.0))
+            self.rec.log("world/render/color", self.rr.Image(color))
+            self.rec.log("world/render/depth", self.rr.DepthImage(depth, meter=1.0))
             self.counts["renders"] += 1
 
 

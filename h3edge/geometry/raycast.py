@@ -8,7 +8,7 @@ pixel convention of :mod:`h3edge.geometry.camera`.
 The ray casting itself is Open3D's ``RaycastingScene`` (Embree inside, wheels for linux x86-64
 and aarch64), imported only when a :class:`MeshRaycaster` is built: the service and the query
 client never load it. It comes with the ``eval`` extra (``pip install 'h3edge[eval]'``).
-Measured against the embreex binding it replaced: ``python -m h3edge.bench.raycast``.
+Measured against the embreex binding it replaced: ``python -m benchmarks.raycast``.
 """
 
 from __future__ import annotations

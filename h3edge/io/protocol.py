@@ -359,3 +359,26 @@ def decode_frame(data: bytes, max_pixels: int = MAX_PIXELS) -> FrameMessage:
     if not isinstance(name, str):
         raise ProtocolError(f"{what}: frame_name must be a string")
     return FrameMessage(ts, fid, color, depth, intr, pose, name)
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The zenoh keys of one map (docs/protocol.md): ``<base>`` = ``h3edge/<map-id>``."""
+
+    base: str
+
+    @classmethod
+    def for_map(cls, map_id: str) -> Keys:
+        return cls(f"h3edge/{check_map_id(map_id)}")
+
+    frame = property(lambda self: f"{self.base}/frame")
+    pose = property(lambda self: f"{self.base}/pose")
+    status = property(lambda self: f"{self.base}/status")
+    profile = property(lambda self: f"{self.base}/profile")
+    mesh = property(lambda self: f"{self.base}/mesh")
+    render = property(lambda self: f"{self.base}/render")
+    save = property(lambda self: f"{self.base}/save")
+    load = property(lambda self: f"{self.base}/load")
+    export = property(lambda self: f"{self.base}/export")
+    sdf = property(lambda self: f"{self.base}/sdf")
+    slice = property(lambda self: f"{self.base}/slice")

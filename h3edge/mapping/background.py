@@ -1,10 +1,10 @@
 """Training apart from integration: a thread that runs the mapper's training steps back to back
-while frames are integrated on the caller's thread (:meth:`Mapper.integrate`).
+while frames are integrated on the caller's thread (:meth:`MapEngine.integrate`).
 
-Each step is :meth:`Mapper.train_between_frames` (the selected keyframes and the newest
+Each step is :meth:`MapEngine.train_between_frames` (the selected keyframes and the newest
 integrated frame no step has used yet); it holds the map lock only to draw its rays and to apply
 its updates, and gives way there to integration, snapshots and checkpoints
-(:meth:`Mapper.exclusive`): its forward and backward passes run beside integration, on the other
+(:meth:`MapEngine.exclusive`): its forward and backward passes run beside integration, on the other
 core, so a frame waits at most for a step's ray draw or update and training never waits for a
 frame. When there is nothing to train on yet (no keyframe), the thread polls every ``idle_s``. A
 step that raises is logged, counted in :attr:`errors` and handed to ``on_error``; the loop goes on.
@@ -21,7 +21,7 @@ import logging
 import threading
 from collections.abc import Callable
 
-from h3edge.mapping.mapper import Mapper
+from h3edge.mapping.engine import MapEngine
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +32,12 @@ class BackgroundTraining:
     map), :meth:`paused` the steps themselves; ``mapper`` is read each step, so assigning another
     mapper (a load) takes effect at once."""
 
-    def __init__(self, mapper: Mapper, idle_s: float = 0.01, on_error: Callable[[Exception], None] | None = None):
+    def __init__(self, mapper: MapEngine, idle_s: float = 0.01, on_error: Callable[[Exception], None] | None = None,
+                 unconditional: bool = False):
         self.mapper = mapper
+        # True: every step is MapEngine.train_once (the library's start_training), whatever the
+        # profile's mapper.train_between_frames says
+        self.unconditional = unconditional
         self.idle_s = idle_s
         self.on_error = on_error  # called on the training thread with a step's exception
         self.errors = 0  # steps that raised
@@ -65,7 +69,7 @@ class BackgroundTraining:
     @contextlib.contextmanager
     def paused(self):
         """No step runs inside this block, not even its forward and backward passes (which
-        :meth:`Mapper.exclusive` lets finish): the step in progress ends first. For work that must
+        :meth:`MapEngine.exclusive` lets finish): the step in progress ends first. For work that must
         have the machine to itself (a benchmark's scoring, whose time does not count)."""
         with self._turn:
             self._pauses += 1
@@ -85,7 +89,8 @@ class BackgroundTraining:
                     break
                 self._in_step = True
             try:
-                trained = self.mapper.train_between_frames() is not None
+                step = self.mapper.train_once if self.unconditional else self.mapper.train_between_frames
+                trained = step() is not None
             except Exception as e:  # same policy as a frame: log, count, go on
                 log.exception("background training step failed")
                 self.errors += 1

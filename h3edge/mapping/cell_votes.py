@@ -3,16 +3,17 @@ that every mapped frame's full-resolution depth votes on, as a TSDF fuses its si
 
 Why: a band sample behind its own ray's measured depth takes a negative SDF target. Behind a thin
 object (a chair's slats, a shelf's edge) those targets lie in the space other views see through,
-and they fill it (docs/silhouettes.md). :mod:`h3edge.mapping.visibility` tests that against the
-views of one training batch, from pooled depth; its blocks are blind within a few pixels of an
-outline, and a batch holds few views. These votes keep what every frame saw, at every pixel:
+and they fill it (research/silhouettes.md). A test against the views of one training batch, from
+their pooled depth (``train.carve_behind``, measured and replaced by these votes, D49-1), is blind
+within a few pixels of an outline, and a batch holds few views. These votes keep what every frame
+saw, at every pixel:
 
 - a cell whose centre projects onto valid depth more than ``margin`` beyond it gains a vote (the
   ray passed through it);
 - a cell within ``behind`` behind the measured depth loses one (where the band puts its targets).
 
 A band sample behind the depth whose cell's net vote is at least ``min_votes`` takes no SDF target
-(:func:`h3edge.mapping.trainer.train_step`): the majority of the frames that looked at the cell
+(:class:`h3edge.mapping.trainer.Trainer`): the majority of the frames that looked at the cell
 saw through it. Each frame's vote is one per cell (the pixel its centre falls on), so many frames
 that saw a cell free outvote a few that put it just behind a surface, and noise that reads a
 surface a little too far now and then does not carve it.

@@ -28,30 +28,15 @@ surface), and the distance (metres) from each known cell to the nearest occupied
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy import ndimage
 
+from h3edge.io.distance_types import FREE, INSIDE, NEAR, UNKNOWN, DistanceSample, DistanceSlice
 from h3edge.mapping.raymarch import PriorLookup
 
-UNKNOWN, FREE, NEAR, INSIDE = 0, 1, 2, 3
+__all__ = ["FREE", "INSIDE", "NEAR", "UNKNOWN", "DistanceSample", "DistanceSlice", "distance_slice", "signed_distance"]
+
 GRADIENT_STEP = 0.05  # voxel sizes, central differences
-
-
-@dataclass(frozen=True)
-class DistanceSample:
-    sdf: np.ndarray  # float32 (N,) metres; NaN unknown; +truncation is a lower bound for FREE
-    state: np.ndarray  # uint8 (N,): UNKNOWN, FREE, NEAR, INSIDE
-    gradient: np.ndarray | None  # float32 (N, 3) or None when not asked for
-
-
-@dataclass(frozen=True)
-class DistanceSlice:
-    occupancy: np.ndarray  # int8 (H, W): -1 unknown, 0 free, 100 occupied
-    distance: np.ndarray  # float32 (H, W) metres to the nearest occupied cell; NaN unknown
-    origin: tuple[float, float, float]  # world position of cell (0, 0)'s corner (x, y) and the height z
-    resolution: float  # metres per cell
 
 
 def _field_sdf(view, pts: np.ndarray, lookup: PriorLookup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

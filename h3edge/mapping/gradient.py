@@ -6,10 +6,10 @@ tr_weak = 0.2 is on this scale.
 
 Occlusion edges do not count as texture: g is 0 where the depth is not one surface across the
 3x3 window (:func:`~h3edge.geometry.depth_edges.depth_discontinuities`, a jump relative to the
-depth; the mapper passes its depth-edge jump, ``Mapper.gradient_jump``). The authors' test, the
+depth; the mapper passes its depth-edge jump, ``MapEngine.gradient_jump``). The authors' test, the
 depth Laplacian above 1 cm, zeroes 45-65 % of the valid pixels of a real Kinect frame (its depth
 steps by 1.2-2.6 cm at 2-3 m), and 98 % of the real kitchen's voxels then read as weak texture
-(docs/textures.md, "Occlusion edges in the colour gradient").
+(research/textures.md, "Occlusion edges in the colour gradient").
 """
 
 from __future__ import annotations

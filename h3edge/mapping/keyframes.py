@@ -23,9 +23,7 @@ import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
 from h3edge.geometry.depth_edges import far_side_of_edges
-from h3edge.mapping.gradient import color_gradient
 from h3edge.mapping.texture_patterns import voxel_gradient_stats
-from h3edge.mapping.visibility import PooledDepth
 
 DEPTH_LEVELS = 65535  # uint16 steps a stored depth image is quantised to (0 = invalid)
 
@@ -37,7 +35,7 @@ class StoredFrame:
     5 bytes per pixel (1.5 MB at 640x480). Whole images, not a fixed subset of pixels: a subset
     drawn once is all that training between frames sees of the view for the rest of the run, and on
     real Kinect data the texture grids over-fit it (held-out SSIM 0.59 -> 0.49 after 900 keyframe
-    iterations with a 32k-pixel subset; 0.61 -> 0.61 with whole images, docs/continuous_training.md).
+    iterations with a 32k-pixel subset; 0.61 -> 0.61 with whole images, research/continuous_training.md).
 
     Example::
 
@@ -51,30 +49,28 @@ class StoredFrame:
     n_valid: int  # pixels with depth
     pose: np.ndarray
     intrinsics: Intrinsics
-    pooled: PooledDepth | None = None  # the whole depth image, pooled (``train.carve_behind``)
     # flat indices of the far side of the depth edges, per setting: computed on first use
     # (:meth:`edge_pixels`), not stored in checkpoints
     _edges: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
-    def of(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics,
-           pooled: PooledDepth | None = None) -> StoredFrame:
+    def of(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics) -> StoredFrame:
         """Store a frame's colour (uint8 H, W, 3) and cleaned depth (float32 metres, 0 = invalid)."""
         depth = np.asarray(depth, np.float32)
         top = float(depth.max(initial=0.0))
         unit = top / DEPTH_LEVELS if top > 0 else 1.0
         q = np.rint(depth / np.float32(unit)).astype(np.uint16)
         q[(depth > 0) & (q == 0)] = 1  # a valid depth stays valid
-        return cls.frozen(np.array(color, np.uint8), q, unit, np.asarray(pose, np.float64), intrinsics, pooled)
+        return cls.frozen(np.array(color, np.uint8), q, unit, np.asarray(pose, np.float64), intrinsics)
 
     @classmethod
     def frozen(cls, color: np.ndarray, depth_q: np.ndarray, depth_unit: float, pose: np.ndarray,
-               intrinsics: Intrinsics, pooled: PooledDepth | None = None) -> StoredFrame:
+               intrinsics: Intrinsics) -> StoredFrame:
         """Take ``color`` and ``depth_q`` as they are and make them read-only: a stored frame never
         changes, so a checkpoint capture can hold the arrays themselves."""
         color, depth_q = np.ascontiguousarray(color), np.ascontiguousarray(depth_q)
         color.flags.writeable = depth_q.flags.writeable = False
-        return cls(color, depth_q, depth_unit, int(np.count_nonzero(depth_q)), pose, intrinsics, pooled)
+        return cls(color, depth_q, depth_unit, int(np.count_nonzero(depth_q)), pose, intrinsics)
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``n`` pixels drawn uniformly, with replacement, among the valid ones (rejection from all
@@ -101,13 +97,6 @@ class StoredFrame:
         """As :func:`edge_pixels` on the stored depth, computed once per setting."""
         return edge_pixels(self._edges, self.depth, radius, jump, step, near_too)
 
-    def draw_textured(self, n: int, threshold: float, jump: float, rng: np.random.Generator
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Up to ``n`` pixels drawn uniformly, with replacement, among the valid ones whose colour
-        gradient exceeds ``threshold`` (:func:`draw_textured`, kept per setting), as :meth:`draw`
-        returns them; fewer (none) where such pixels are rare (absent)."""
-        return draw_textured(self, n, threshold, jump, rng)
-
     @property
     def depth(self) -> np.ndarray:
         """The stored depth, float32 metres (H, W), 0 = invalid."""
@@ -115,9 +104,8 @@ class StoredFrame:
 
     @property
     def nbytes(self) -> int:
-        pooled = self.pooled.nbytes if self.pooled is not None else 0
         edges = sum(e.nbytes for e in self._edges.values())
-        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + pooled + edges
+        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + edges
 
 
 def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: int, near_too: bool) -> np.ndarray:
@@ -128,39 +116,6 @@ def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: 
     if key not in cache:
         cache[key] = np.flatnonzero(far_side_of_edges(depth, radius, jump, step, near_too)).astype(np.int32)
     return cache[key]
-
-
-def draw_textured(frame, n: int, threshold: float, jump: float, rng: np.random.Generator
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``frame.draw_textured`` for a :class:`StoredFrame` or the mapper's current frame (``color``,
-    ``depth``, ``at`` and an ``_edges`` cache): the valid pixels whose colour gradient g (H3's,
-    :func:`~h3edge.mapping.gradient.color_gradient`; pixels at depth discontinuities above ``jump``
-    times the depth excluded) exceeds ``threshold`` are kept in the cache as packed bits (1 bit a
-    pixel), computed on the first draw; the depth is read only then."""
-    key = ("textured", float(threshold), float(jump))
-    bits = frame._edges.get(key)
-    if bits is None:
-        depth = frame.depth
-        g = color_gradient(frame.color, depth, jump)
-        bits = frame._edges[key] = np.packbits(((g > threshold) & (depth > 0)).reshape(-1))
-    return frame.at(draw_from_mask(bits, frame.color.shape[0] * frame.color.shape[1], n, rng))
-
-
-def draw_from_mask(bits: np.ndarray, size: int, n: int, rng: np.random.Generator, rounds: int = 4) -> np.ndarray:
-    """Up to ``n`` flat indices (int64) drawn uniformly, with replacement, among the set bits of
-    ``bits`` (packed, over ``size`` pixels), by rejection from all pixels in at most ``rounds``
-    rounds: fewer where the set bits are rare (under ~1 / (4 * rounds) of the pixels drawn short)."""
-    got: list[np.ndarray] = []
-    need, k = n, 4 * n + 16
-    for _ in range(rounds):
-        if need <= 0:
-            break
-        cand = rng.integers(0, size, k)
-        hit = cand[((bits[cand >> 3] >> (7 - (cand & 7))) & 1).astype(bool)][:need]
-        got.append(hit)
-        need -= len(hit)
-        k = min(int(need * k / max(len(hit), 1) * 1.2) + 16, 4 * size)
-    return np.concatenate(got) if got else np.zeros(0, np.int64)
 
 
 def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.ndarray:
@@ -209,16 +164,12 @@ class KeyframeSet:
         kfs = self.keyframes
         meta = {"keyframes": [{"frame_id": k.frame_id, "selected": k.selected_this_round,
                                "intrinsics": k.payload.intrinsics.to_dict(), "pose": k.payload.pose.tolist(),
-                               "image": list(k.payload.depth_q.shape), "depth_unit": k.payload.depth_unit,
-                               "pooled": None if k.payload.pooled is None else
-                               [k.payload.pooled.stride, *k.payload.pooled.depth.shape]}
+                               "image": list(k.payload.depth_q.shape), "depth_unit": k.payload.depth_unit}
                               for k in kfs],
                 "keyframe_policy": {"frames_since_insert": self.frames_since_insert, "pruned": self.pruned}}
         arrays: dict[str, np.ndarray] = {}
         for name, get, dt, w in (("voxels", lambda k: k.voxels, np.int64, ()),
-                                 ("scores", lambda k: k.scores, np.float64, ()),
-                                 ("pooled", lambda k: np.zeros(0, np.float32) if k.payload.pooled is None
-                                  else k.payload.pooled.depth.reshape(-1), np.float32, ())):
+                                 ("scores", lambda k: k.scores, np.float64, ())):
             parts = [get(k) for k in kfs]
             arrays[f"{name}_offsets"] = np.cumsum([0] + [len(p) for p in parts]).astype(np.int64)
             arrays[name] = np.concatenate(parts).astype(dt) if parts else np.zeros((0, *w), dt)
@@ -232,15 +183,9 @@ class KeyframeSet:
             data, off = arrays[name], arrays[f"{name}_offsets"]
             return [data[off[i]:off[i + 1]] for i in range(len(off) - 1)]
 
-        names = ("voxels", "scores") + (("pooled",) if "pooled" in arrays else ())
-        parts = {n: split(n) for n in names}
-
-        def pooled(i: int, km: dict) -> PooledDepth | None:
-            if km.get("pooled") is None or "pooled" not in parts:
-                return None
-            stride, h, w = km["pooled"]
-            return PooledDepth(parts["pooled"][i].reshape(h, w), np.asarray(km["pose"], np.float64),
-                               Intrinsics(**km["intrinsics"]), int(stride))
+        # (maps saved before the cross-view test's removal also hold each keyframe's pooled depth:
+        # not read)
+        parts = {n: split(n) for n in ("voxels", "scores")}
 
         def stored(i: int, km: dict) -> StoredFrame:
             h, w = km["image"]
@@ -249,7 +194,7 @@ class KeyframeSet:
             if color.shape != (h, w, 3) or depth_q.shape != (h, w):
                 raise ValueError(f"keyframe {i}: stored images {color.shape} / {depth_q.shape}, expected {h}x{w}")
             return StoredFrame.frozen(color, depth_q, float(km["depth_unit"]), np.asarray(km["pose"], np.float64),
-                                      Intrinsics(**km["intrinsics"]), pooled(i, km))
+                                      Intrinsics(**km["intrinsics"]))
 
         self.keyframes = [Keyframe(km["frame_id"], parts["voxels"][i], parts["scores"][i], stored(i, km),
                                    km["selected"])

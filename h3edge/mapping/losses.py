@@ -27,10 +27,6 @@ class LossWeights:
     sdf: float = 50000.0  # alpha_sdf
     free_space: float = 10.0  # alpha_fs
     surface_rgb: float = 0.5  # surface colour points (TrainConfig.surface_color_points; not in the paper)
-    # SDF = 0 at the same points, their measured surface, on L_sdf's scale (0: off, the paper's).
-    # Measured at 50000 (docs/continuous_training.md): Depth L1 -18 % sim, -15 % studio, but the real
-    # Kinect sequence loses 0.010 SSIM and gains pixels in front; off in every profile
-    surface_sdf: float = 0.0
     # SDF >= 0 in cells the frames voted free (votes.points; not in the paper), on L_sdf's scale
     seen_free: float = 50000.0
     s3im: bool = True

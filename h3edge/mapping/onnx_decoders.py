@@ -43,7 +43,7 @@ class InferenceConfig:
     providers: str = "CPUExecutionProvider"  # onnxruntime execution providers, in order of preference
     threads: int = 0  # onnxruntime intra-op threads (0: onnxruntime's default, one per core)
     # rows per onnxruntime run: on a CPU, 8k rows keep a 64-wide layer's activations (2 MB) in
-    # cache; one run over 1M rows was 2x slower (docs/bench_inference.md). GPUs want large batches.
+    # cache; one run over 1M rows was 2x slower (research/bench_inference.md). GPUs want large batches.
     batch_rows: int = 8192
     # TensorRT engine and timing cache; empty: the service's <state_dir>/<map_id>/trt_cache, an
     # offline run's <out>/trt_cache (a new snapshot then reuses the engine instead of rebuilding it)
@@ -140,7 +140,7 @@ def make_session(model: bytes, cfg: InferenceConfig = InferenceConfig(), provide
         so.intra_op_num_threads = cfg.threads
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     # no busy-waiting between runs: the hash kernels (numba / OpenMP) and training share the cores,
-    # and spinning pool threads slowed mesh extraction 1.8x (docs/bench_inference.md)
+    # and spinning pool threads slowed mesh extraction 1.8x (research/bench_inference.md)
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return ort.InferenceSession(model, so, providers=providers or resolve_providers(cfg)[0])
 

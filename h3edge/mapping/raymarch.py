@@ -62,7 +62,7 @@ class RenderConfig:
     # a fine window's first + to - crossing of the full SDF is a surface, rendered at the crossing,
     # whatever the weights (false: the weights alone decide): a field steeper than the unit slope
     # leaves the 2.5 mm kernel between two 1 cm samples (Replica: 1.4 % of a view rendered through
-    # chair seats; held-out PSNR +0.74 dB and Depth L1 -15 % with it, docs/silhouettes.md)
+    # chair seats; held-out PSNR +0.74 dB and Depth L1 -15 % with it, research/silhouettes.md)
     window_crossing: bool = True
     # in front of each ray's prior crossing the full SDF (prior + residual) is searched at this step
     # through the allocated voxels: a surface the residual carries where the prior has no crossing

@@ -3,7 +3,7 @@
 - :class:`UniformTexture`: H2-Mapping's single multiresolution hash grid.
 - :class:`QuasiHeteroTexture`: H3-Mapping's quasi-heterogeneous grids (Sec. III): each sample is
   encoded in the identity space (always), in the scaling-warped space S(x) = C x when its voxel is
-  weak texture (every classified voxel with ``scaling_everywhere``, docs/textures.md), and in
+  weak texture (every classified voxel with ``scaling_everywhere``, research/textures.md), and in
   the affine-warped space of each of its voxel's low-frequency directions m
   (x -> a(c) + A_m (x - c), A_m = diag(1, 1, C) R(DIR_m)^T about the voxel centre c). All spaces
   read ONE hash table, each through its own hash function (fixed primes and offsets); the

@@ -36,7 +36,7 @@ class TextureConfig:
     warp_weak: bool = True  # "w.W": the scaling warp for weak texture
     # the scaling-warped (low-frequency) features for every classified voxel, not only weak ones: no
     # feature block switching on and off between neighbouring voxels of different class (a
-    # departure; measured +0.4-0.5 dB on both simulated scenes, equal on real data, docs/textures.md;
+    # departure; measured +0.4-0.5 dB on both simulated scenes, equal on real data, research/textures.md;
     # False: the paper's, weak voxels only)
     scaling_everywhere: bool = True
     update_interval: int = 10  # frames between texture pattern determinations (authors)
@@ -59,7 +59,7 @@ class TextureConfig:
     # but not used: zeroing it moves studio's surface colours by 0.12 / 255 and held-out PSNR by
     # 0.00 dB. Leaving it out (3) is a departure measured in two runs: sim +0.14 / +0.22 dB, studio
     # -0.01 / +0.40 dB, real +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 % faster; at orin-agx's
-    # 8,192 rays no difference (docs/textures.md)
+    # 8,192 rays no difference (research/textures.md)
     identity_levels: int = 0
 
 

@@ -14,11 +14,9 @@ range, most free-space samples miss every voxel (6 % land in one on the tiny sim
 48 % with ``free_in_voxels``), yet on real Kinect data the in-voxel draw measured no better, so it
 is off by default. The full-ray sampling is what novel-view rendering uses.
 
-Band samples behind the measured depth take a negative SDF target, except (``carve_behind``) where
-another view of the batch measured a depth more than ``carve_margin`` beyond them
-(:mod:`h3edge.mapping.visibility`): behind a thin object those targets would fill free space.
-With fine free-space votes (:mod:`h3edge.mapping.cell_votes`, ``votes.cell`` > 0), they also take
-none in cells the majority of all mapped frames saw through, and ``votes.points`` points drawn in
+Band samples behind the measured depth take a negative SDF target, except, with fine free-space
+votes (:mod:`h3edge.mapping.cell_votes`, ``votes.cell`` > 0), in cells the majority of all mapped
+frames saw through (behind a thin object those targets would fill free space), and ``votes.points`` points drawn in
 such cells near a surface the priors put there take the sign term relu(-s)^2 (weight
 ``weights.seen_free``): space most views saw through must not read inside. The term is flat
 wherever s >= 0, and few drawn points read inside (0.9 % on the real set), so a forward pass
@@ -30,9 +28,13 @@ only through volume rendering): more pixels of the same frames, back-projected w
 measured depth; the colour field at that point takes the pixel's colour (L1, weight
 ``weights.surface_rgb``). A point costs one texture lookup and the colour MLP, against a ray's
 ~20 samples of the SDF field, so a step sees several times more of each frame's colour.
-With ``weights.surface_sdf`` > 0 the same points also take SDF = 0 (the measured surface pins the
-zero level at more pixels than the rays reach; off in every profile: it sharpens clean depth but
-fits Kinect noise, docs/continuous_training.md).
+
+:class:`Trainer` runs a step in stages, each a method: :meth:`~Trainer.sample` (depths along the
+rays, located in the voxels; the seen-free points) -> :meth:`~Trainer.evaluate` (the SDF field at
+every sample, one pass) -> :meth:`~Trainer.composite` (colour where it weighs, volume rendering)
+-> :meth:`~Trainer.losses` (``LOSS_TERMS``: one small function a term, each with its weight in
+:class:`~h3edge.mapping.losses.LossWeights`) -> :meth:`~Trainer.apply` (backward, the optimisers,
+the trained-ray counts). The reported losses come back to the host in one transfer a step.
 """
 
 from __future__ import annotations
@@ -47,7 +49,6 @@ import torch
 from h3edge.mapping.cell_votes import CellVotes
 from h3edge.mapping.field import Field
 from h3edge.mapping.losses import LossWeights, depth_l1, free_space_and_sdf, rgb_l1, s3im
-from h3edge.mapping.visibility import PooledDepth, seen_through
 from h3edge.mapping.volume_rendering import color_samples, composite
 from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
@@ -65,25 +66,17 @@ class TrainConfig:
     sdf_behind: float = 0.05
     free_samples: int = 8
     # free-space samples where the field lives, inside allocated voxels (as the paper's sampler):
-    # measured no better than stratified samples on real Kinect data (docs/silhouettes.md), off
+    # measured no better than stratified samples on real Kinect data (research/silhouettes.md), off
     free_in_voxels: bool = False
     free_candidates: int = 64  # stratified candidates per ray the in-voxel free samples are drawn from
     # colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel
     # band sample, the paper's); the skipped samples carry < floor of a ray's colour each
     color_weight_floor: float = 1e-3
     surface_aware: bool = True
-    # band samples behind the measured depth take no SDF target where another view of the batch
-    # (its keyframes and the current frame) measured more than carve_margin beyond them: behind a
-    # thin object the negative targets would fill the free space other views saw. A departure from
-    # the paper (false), measured on real Kinect data: pixels rendered > 5 cm in front 4.9 -> 3.8 %,
-    # Depth L1 -10 % (docs/silhouettes.md)
-    carve_behind: bool = True
-    carve_margin: float = 0.03  # m: depth noise and pose error a view must see past
-    carve_stride: int = 4  # pixels per side of the pooled depth blocks a view keeps for the test
     # pixels per iteration whose colour trains the colour field at their measured surface point,
     # besides the rays (0: the paper's, colour only through volume rendering; the Orin profiles set
     # 2048: sim +0.8 dB, studio +0.6 dB, real and Replica unchanged; x86-cpu 8192 with its third
-    # iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09; docs/continuous_training.md)
+    # iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09; research/continuous_training.md)
     surface_color_points: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
 
@@ -94,7 +87,6 @@ class RayBatch:
     dirs: torch.Tensor  # (R, 3) world directions with camera z = 1
     depth: torch.Tensor  # (R,) measured z-depth, 0 = invalid
     color: torch.Tensor  # (R, 3) in [0, 1]
-    views: list[PooledDepth] = field(default_factory=list)  # the frames the rays came from (carve_behind)
     surface_points: torch.Tensor | None = None  # (P, 3) world points at measured depths (surface colour)
     surface_color: torch.Tensor | None = None  # (P, 3) their pixels' colours in [0, 1]
 
@@ -161,18 +153,6 @@ def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch,
     return rgb_l1(pred, rays.surface_color[keep])
 
 
-def surface_sdf_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch, truncation: float,
-                     located: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor | None:
-    """Mean squared SDF (in metres, as the band's L_sdf) of the field at ``rays.surface_points``, the
-    measured surface, over the points inside allocated voxels; None when there are none.
-    ``located``: the points' :func:`locate_surface_points`, when already known."""
-    located = locate_surface_points(voxels, rays) if located is None else located
-    if located is None or not (located[0] >= 0).any():
-        return None
-    sdf, inside = neural_field.sdf(rays.surface_points, voxels, located)
-    return ((truncation * sdf[inside]) ** 2).mean()
-
-
 def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float, count: int | None = None
                    ) -> torch.Tensor | None:
     """Mean squared negative part of the SDF ``sdf`` (truncation units; in metres, as L_sdf) at
@@ -201,96 +181,239 @@ def reading_inside(neural_field: Field, voxels: VoxelMap, points: tuple[np.ndarr
     return (p[keep], vox[keep], frac[keep]), int(inside.sum())
 
 
-def train_step(neural_field: Field, voxels: VoxelMap, rays: RayBatch, optimizer: torch.optim.Optimizer,
-               cfg: TrainConfig, near: float, generator: torch.Generator | None = None,
-               prior_opt: PriorAdam | None = None, votes: CellVotes | None = None,
-               commit: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
-    """Forward, losses, backward; Adam on the MLPs (``optimizer``, which may also hold the priors),
-    lazy Adam on the SDF priors (``prior_opt``) and on the touched hash-table rows. Free-space
-    samples start at ``near`` (m). ``votes``: band samples behind the depth in cells the frames
-    voted free take no SDF target (:mod:`h3edge.mapping.cell_votes`). ``commit``: a context the
-    optimiser updates run in (the map lock, when integration runs on another thread meanwhile:
-    the forward and backward passes only read the map, and a prior tensor that integration grew
-    meanwhile takes the gradient the step computed). The step's rays count in the voxels their
-    measured surface points fall in (:meth:`VoxelMap.count_trained`)."""
-    tr = voxels.cfg.truncation
-    priors_used = voxels.priors
-    t, b0 = sample_depths(rays.depth, cfg, tr, near, generator)
-    if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
-        t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, near, generator), t[:, b0:]], 1)
-    r, s = t.shape
-    pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
-    flat = pts.reshape(-1, 3)
-    vox, frac = voxels.locate(flat.detach().cpu().numpy())
-    free_pts = None  # points in cells voted free, (world, voxel ids, positions in the voxel)
-    if votes is not None and votes.cfg.points > 0 and cfg.weights.seen_free > 0:
-        free_pts, free_count = reading_inside(neural_field, voxels,
-                                              votes.sample_free(votes.cfg.points, voxels, generator), flat.device)
-        free_pts = free_pts if len(free_pts[0]) else None
-    if free_pts is not None:  # one field evaluation for the ray samples and the seen-free points
-        p, pv, pf = free_pts
-        both_located = (np.concatenate([vox, pv]), np.concatenate([frac, pf]))
-        both, both_in = neural_field.sdf(torch.cat([flat, torch.from_numpy(p.astype(np.float32)).to(flat.device)]),
-                                         voxels, both_located)
-        sdf, inside, free_sdf, free_in = both[:r * s], both_in[:r * s], both[r * s:], both_in[r * s:]
-    else:
-        sdf, inside = neural_field.sdf(flat, voxels, (vox, frac))
-    sdf, inside = sdf.reshape(r, s), inside.reshape(r, s) & (rays.depth > 0)[:, None]
-    band_pts = pts[:, b0:].reshape(-1, 3)
-    band_vox = torch.from_numpy(vox.reshape(r, s)[:, b0:].reshape(-1)).to(flat.device)
-    need = color_samples(sdf[:, b0:], neural_field.cfg.beta, inside[:, b0:], cfg.color_weight_floor)
-    band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
-    col = torch.zeros(len(band_pts), 3, device=flat.device).index_copy(
-        0, band_in, neural_field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
-    out = composite(sdf[:, b0:], t[:, b0:], col, neural_field.cfg.beta, inside[:, b0:], color_mask=need)
-    sdf_mask, carved = inside, 0.0
-    use_views, use_votes = cfg.carve_behind and bool(rays.views), votes is not None
-    if use_views or use_votes:
-        behind = inside & (t > rays.depth[:, None])
-        free = torch.zeros(int(behind.sum()), dtype=torch.bool, device=flat.device)
-        if use_views:
-            free |= seen_through(pts[behind].detach(), rays.views, cfg.carve_margin)
-        if use_votes:
-            mask = behind.reshape(-1).cpu().numpy()
-            free |= torch.from_numpy(votes.seen_free(vox[mask], frac[mask])).to(flat.device)
-        sdf_mask = inside.clone()
-        sdf_mask[behind] = ~free
-        carved = float(free.float().mean()) if len(free) else 0.0
-    # pack valid samples to the front of each row (order kept) for the surface-aware rule
-    order = torch.sort((~sdf_mask).to(torch.int8), dim=1, stable=True).indices
-    fs, sdf_loss = free_space_and_sdf(sdf.gather(1, order), t.gather(1, order), rays.depth,
-                                      sdf_mask.gather(1, order), tr, cfg.surface_aware, cfg.sdf_behind / tr)
-    w = cfg.weights
-    hit = out.hit
-    l_rgb = rgb_l1(out.color[hit], rays.color[hit]) if hit.any() else sdf.sum() * 0
+@dataclass
+class Samples:
+    """What :meth:`Trainer.sample` draws for one step."""
+
+    t: torch.Tensor  # (R, S) z-depths along each ray, the free samples first
+    band_start: int  # column where the band samples start
+    pts: torch.Tensor  # (R, S, 3) world points
+    vox: np.ndarray  # (R * S,) voxel id of each point (-1: none)
+    frac: np.ndarray  # (R * S, 3) its position in the voxel
+    free_pts: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # seen-free points that read inside
+    free_count: int  # seen-free points drawn inside a voxel (the mean's denominator)
+
+
+@dataclass
+class FieldEval:
+    """The SDF field at a step's samples (truncation units) and which count (in a voxel, valid depth)."""
+
+    sdf: torch.Tensor  # (R, S)
+    inside: torch.Tensor  # (R, S) bool
+    free_sdf: torch.Tensor | None  # at the seen-free points
+    free_in: torch.Tensor | None
+
+
+@dataclass
+class Rendered:
+    """A step's volume rendering and the SDF mask its losses use."""
+
+    color: torch.Tensor  # (R, 3)
+    depth: torch.Tensor  # (R,)
+    hit: torch.Tensor  # (R,) bool: rays whose render weights reached the surface
+    sdf_mask: torch.Tensor  # (R, S) bool: samples that take an SDF / free-space target
+    carved: torch.Tensor  # () share of the band samples behind the depth that lost their target to the votes
+
+
+@dataclass
+class StepInputs:
+    """Everything a loss term reads."""
+
+    rays: RayBatch
+    samples: Samples
+    field_eval: FieldEval
+    rendered: Rendered
+    truncation: float
+    cfg: TrainConfig
+    surface_located: tuple[np.ndarray, np.ndarray] | None
+    generator: torch.Generator | None
+    fs_sdf: tuple[torch.Tensor, torch.Tensor] | None = None  # (L_fs, L_sdf), once both terms asked
+
+
+def _rgb_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
+    """L1 on the rendered colour of the rays that hit (+ S3IM over them)."""
+    hit, w = x.rendered.hit, x.cfg.weights
+    if not hit.any():
+        return x.field_eval.sdf.sum() * 0
+    loss = rgb_l1(x.rendered.color[hit], x.rays.color[hit])
     if w.s3im and hit.sum() >= w.s3im_patch_width:
-        l_rgb = l_rgb + s3im(out.color[hit], rays.color[hit], w.s3im_kernel, w.s3im_stride, w.s3im_repeats,
-                             w.s3im_patch_width, generator)
-    l_d = depth_l1(out.depth[hit], rays.depth[hit]) if hit.any() else sdf.sum() * 0
-    loss = w.rgb * l_rgb + w.depth * l_d + w.free_space * fs + w.sdf * sdf_loss
-    located = locate_surface_points(voxels, rays)  # one lookup for both surface-point losses
-    measured = rays.depth > 0  # the voxels this step's rays ended in, counted once it commits
-    ends = voxels.locate((rays.origins[measured] + rays.dirs[measured] * rays.depth[measured, None])
-                         .detach().cpu().numpy())[0]
-    l_surf = surface_color_loss(neural_field, voxels, rays, located)
-    if l_surf is not None:
-        loss = loss + w.surface_rgb * l_surf
-    l_surf_sdf = surface_sdf_loss(neural_field, voxels, rays, tr, located) if w.surface_sdf > 0 else None
-    if l_surf_sdf is not None:
-        loss = loss + w.surface_sdf * l_surf_sdf
-    l_free_cells = seen_free_loss(free_sdf, free_in, tr, free_count) if free_pts is not None else None
-    if l_free_cells is not None:
-        loss = loss + w.seen_free * l_free_cells
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    with commit():
-        optimizer.step()
-        if prior_opt is not None:
-            prior_opt.step(voxels, priors_used)
-        neural_field.sparse_step(cfg.lr)
-        voxels.count_trained(ends)
-    return {"loss": float(loss.detach()), "rgb": float(l_rgb.detach()), "depth": float(l_d.detach()),
-            "free_space": float(fs.detach()), "sdf": float(sdf_loss.detach()), "hit_ratio": float(hit.float().mean()),
-            "carved": carved, "surface_rgb": float(l_surf.detach()) if l_surf is not None else 0.0,
-            "surface_sdf": float(l_surf_sdf.detach()) if l_surf_sdf is not None else 0.0,
-            "seen_free": float(l_free_cells.detach()) if l_free_cells is not None else 0.0}
+        loss = loss + s3im(x.rendered.color[hit], x.rays.color[hit], w.s3im_kernel, w.s3im_stride, w.s3im_repeats,
+                           w.s3im_patch_width, x.generator)
+    return loss
+
+
+def _depth_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
+    """L1 on the rendered depth of the rays that hit."""
+    hit = x.rendered.hit
+    if not hit.any():
+        return x.field_eval.sdf.sum() * 0
+    return depth_l1(x.rendered.depth[hit], x.rays.depth[hit])
+
+
+def _free_space_and_sdf(x: StepInputs) -> tuple[torch.Tensor, torch.Tensor]:
+    """(L_fs, L_sdf) over the masked samples, packed to the front of each row (order kept) for the
+    surface-aware rule; computed once a step for both terms."""
+    if x.fs_sdf is None:
+        s, mask = x.field_eval.sdf, x.rendered.sdf_mask
+        order = torch.sort((~mask).to(torch.int8), dim=1, stable=True).indices
+        x.fs_sdf = free_space_and_sdf(s.gather(1, order), x.samples.t.gather(1, order), x.rays.depth,
+                                      mask.gather(1, order), x.truncation, x.cfg.surface_aware,
+                                      x.cfg.sdf_behind / x.truncation)
+    return x.fs_sdf
+
+
+def _free_space_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
+    """Free-space samples pushed to the truncation value."""
+    return _free_space_and_sdf(x)[0]
+
+
+def _sdf_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
+    """Band samples fitted to the measured signed distance."""
+    return _free_space_and_sdf(x)[1]
+
+
+def _surface_rgb_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor | None:
+    """The colour field at the surface colour points (:func:`surface_color_loss`)."""
+    return surface_color_loss(neural_field, voxels, x.rays, x.surface_located)
+
+
+def _seen_free_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor | None:
+    """SDF >= 0 at points in cells the frames voted free (:func:`seen_free_loss`)."""
+    if x.samples.free_pts is None:
+        return None
+    return seen_free_loss(x.field_eval.free_sdf, x.field_eval.free_in, x.truncation, x.samples.free_count)
+
+
+# (name: the LossWeights field that weighs it and the key it is reported under, term); summed in this
+# order. A term that returns None (nothing to fit this step) adds nothing and reports 0.
+LOSS_TERMS: tuple[tuple[str, Callable[[Field, VoxelMap, StepInputs], torch.Tensor | None]], ...] = (
+    ("rgb", _rgb_term),
+    ("depth", _depth_term),
+    ("free_space", _free_space_term),
+    ("sdf", _sdf_term),
+    ("surface_rgb", _surface_rgb_term),
+    ("seen_free", _seen_free_term),
+)
+
+
+class Trainer:
+    """One optimisation step of a map on a :class:`RayBatch`, in stages (module docstring).
+
+    ``cfg`` (its ``weights`` the loss weights), ``near`` (m: free-space samples start there),
+    the map's ``neural_field`` and ``voxels``, ``optimizer`` (Adam on the MLPs), ``prior_opt`` (lazy
+    Adam on the SDF priors), ``votes`` (fine free-space votes, or None), ``generator`` (the map's
+    torch generator: every random draw of a step comes from it)."""
+
+    def __init__(self, cfg: TrainConfig, near: float, neural_field: Field, voxels: VoxelMap,
+                 optimizer: torch.optim.Optimizer, prior_opt: PriorAdam | None = None,
+                 votes: CellVotes | None = None, generator: torch.Generator | None = None):
+        self.cfg, self.near = cfg, near
+        self.field, self.voxels, self.optimizer, self.prior_opt = neural_field, voxels, optimizer, prior_opt
+        self.votes, self.generator = votes, generator
+
+    def step(self, rays: RayBatch,
+             commit: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext) -> dict[str, float]:
+        """Sample, evaluate, composite, losses, apply; the losses (floats: ``loss``, each term,
+        ``hit_ratio``, ``carved``). ``commit``: a context the updates run in (the map lock, when
+        integration runs on another thread meanwhile: the forward and backward passes only read the
+        map, and a prior tensor that integration grew meanwhile takes the gradient the step
+        computed)."""
+        priors_used = self.voxels.priors
+        samples = self.sample(rays)
+        field_eval = self.evaluate(rays, samples)
+        rendered = self.composite(rays, samples, field_eval)
+        inputs = StepInputs(rays, samples, field_eval, rendered, self.voxels.cfg.truncation, self.cfg,
+                            locate_surface_points(self.voxels, rays), self.generator)
+        loss, terms = self.losses(inputs)
+        self.apply(loss, rays, priors_used, commit)
+        names = ["loss", *terms, "hit_ratio", "carved"]
+        values = torch.stack([loss.detach(), *(v.detach().reshape(()).to(loss.dtype) for v in terms.values()),
+                              rendered.hit.float().mean().to(loss.dtype), rendered.carved.to(loss.dtype)])
+        return dict(zip(names, values.tolist()))  # the step's one host transfer of its losses
+
+    def sample(self, rays: RayBatch) -> Samples:
+        """Depths along each ray (free + band; :func:`sample_depths`, in voxels with
+        ``free_in_voxels``), their world points located in the voxels, and the seen-free points that
+        read inside (:func:`reading_inside`)."""
+        cfg, voxels, tr = self.cfg, self.voxels, self.voxels.cfg.truncation
+        t, b0 = sample_depths(rays.depth, cfg, tr, self.near, self.generator)
+        if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
+            t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, self.near, self.generator), t[:, b0:]], 1)
+        pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
+        vox, frac = voxels.locate(pts.reshape(-1, 3).detach().cpu().numpy())
+        free_pts, free_count = None, 0
+        votes = self.votes
+        if votes is not None and votes.cfg.points > 0 and cfg.weights.seen_free > 0:
+            free_pts, free_count = reading_inside(self.field, voxels,
+                                                  votes.sample_free(votes.cfg.points, voxels, self.generator),
+                                                  pts.device)
+            free_pts = free_pts if len(free_pts[0]) else None
+        return Samples(t, b0, pts, vox, frac, free_pts, free_count)
+
+    def evaluate(self, rays: RayBatch, smp: Samples) -> FieldEval:
+        """The SDF field at every sample and seen-free point, in one pass."""
+        r, s = smp.t.shape
+        flat = smp.pts.reshape(-1, 3)
+        free_sdf = free_in = None
+        if smp.free_pts is not None:
+            p, pv, pf = smp.free_pts
+            located = (np.concatenate([smp.vox, pv]), np.concatenate([smp.frac, pf]))
+            both, both_in = self.field.sdf(torch.cat([flat, torch.from_numpy(p.astype(np.float32)).to(flat.device)]),
+                                           self.voxels, located)
+            sdf, inside, free_sdf, free_in = both[:r * s], both_in[:r * s], both[r * s:], both_in[r * s:]
+        else:
+            sdf, inside = self.field.sdf(flat, self.voxels, (smp.vox, smp.frac))
+        inside = inside.reshape(r, s) & (rays.depth > 0)[:, None]
+        return FieldEval(sdf.reshape(r, s), inside, free_sdf, free_in)
+
+    def composite(self, rays: RayBatch, smp: Samples, ev: FieldEval) -> Rendered:
+        """Colour at the band samples whose render weight counts, volume rendering of the band, and
+        the SDF mask: every sample in a voxel, less the band samples behind the depth in cells the
+        votes call free."""
+        r, s = smp.t.shape
+        b0, dev = smp.band_start, smp.pts.device
+        band_pts = smp.pts[:, b0:].reshape(-1, 3)
+        band_vox = torch.from_numpy(smp.vox.reshape(r, s)[:, b0:].reshape(-1)).to(dev)
+        need = color_samples(ev.sdf[:, b0:], self.field.cfg.beta, ev.inside[:, b0:], self.cfg.color_weight_floor)
+        band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
+        col = torch.zeros(len(band_pts), 3, device=dev).index_copy(
+            0, band_in, self.field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
+        out = composite(ev.sdf[:, b0:], smp.t[:, b0:], col, self.field.cfg.beta, ev.inside[:, b0:], color_mask=need)
+        sdf_mask, carved = ev.inside, torch.zeros((), device=dev)
+        if self.votes is not None:
+            behind = ev.inside & (smp.t > rays.depth[:, None])
+            mask = behind.reshape(-1).cpu().numpy()
+            free = torch.from_numpy(self.votes.seen_free(smp.vox[mask], smp.frac[mask])).to(dev)
+            sdf_mask = ev.inside.clone()
+            sdf_mask[behind] = ~free
+            if len(free):
+                carved = free.float().mean()
+        return Rendered(out.color, out.depth, out.hit, sdf_mask, carved)
+
+    def losses(self, x: StepInputs) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted sum of ``LOSS_TERMS`` and each term's value (0 for a term with nothing to fit)."""
+        w = self.cfg.weights
+        loss, terms = None, {}
+        for name, term in LOSS_TERMS:
+            value = term(self.field, self.voxels, x)
+            terms[name] = value if value is not None else torch.zeros((), device=x.field_eval.sdf.device)
+            if value is not None:
+                loss = getattr(w, name) * value if loss is None else loss + getattr(w, name) * value
+        return loss, terms
+
+    def apply(self, loss: torch.Tensor, rays: RayBatch, priors_used: torch.Tensor,
+              commit: Callable[[], contextlib.AbstractContextManager]) -> None:
+        """Backward, then inside ``commit``: Adam on the MLPs, lazy Adam on the priors and the
+        touched hash-table rows, and the step's rays counted in the voxels their measured surface
+        points fall in (:meth:`VoxelMap.count_trained`)."""
+        measured = rays.depth > 0
+        ends = self.voxels.locate((rays.origins[measured] + rays.dirs[measured] * rays.depth[measured, None])
+                                  .detach().cpu().numpy())[0]
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        with commit():
+            self.optimizer.step()
+            if self.prior_opt is not None:
+                self.prior_opt.step(self.voxels, priors_used)
+            self.field.sparse_step(self.cfg.lr)
+            self.voxels.count_trained(ends)

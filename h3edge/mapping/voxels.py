@@ -15,9 +15,7 @@ within ``init_range`` of the surface (or anywhere in front of it, truncated to `
 that is set) and projects inside the image onto valid depth, only when all 8 corners of its voxel
 do (the paper). With ``prior_retry`` every frame retries the unset vertices of the voxels it
 observes, as the authors' code does (one try at allocation fails most of the time on real depth,
-which has holes at every edge). Until then a vertex reads ``unset_prior``. With
-``prior_fusion_frames`` K > 0, priors are instead fused per vertex: the running mean of the
-projective SDF over the first K frames that see the vertex within the band, as TSDF fusion.
+which has holes at every edge). Until then a vertex reads ``unset_prior``.
 The coarse SDF of a point is the trilinear interpolation of its voxel's 8 priors.
 
 Every frame also records, per vertex of the voxels it observes, how far behind its measured
@@ -137,19 +135,10 @@ class VoxelConfig:
     # are the projective SDF truncated to [-c, c] truncation units, as in TSDF fusion, and a vertex
     # seen more than init_range in front of the surface is set to +c (free space: the free-space
     # loss's own target at c = 1) instead of being left to read as a surface. A departure from the
-    # paper, measured on real Kinect data (docs/silhouettes.md): -0.6 points of pixels in front.
+    # paper, measured on real Kinect data (research/silhouettes.md): -0.6 points of pixels in front.
     prior_clamp: float = 1.0
     # the value an unset prior reads as, truncation units (0 reads as "on the surface")
     unset_prior: float = 0.0
-    # 0: the paper's initialisation (a voxel's 8 priors set together, once). K > 0: each vertex's
-    # prior is the running mean of its projective SDF over the first K frames that see it within
-    # the band (per vertex, as TSDF fusion; training refines it in between)
-    prior_fusion_frames: int = 0
-    fusion_behind: float = 0.245  # m behind the measured surface a vertex still takes a fused value
-    # with fusion: a vertex never fused yet that a frame sees farther than fusion_behind behind the
-    # surface reads -prior_clamp (occluded: inside until shown otherwise), and the first frame that
-    # sees it in the band or in free space replaces that value (it counts as no observation)
-    fusion_occluded_inside: bool = False
     # m: the meshes and distance queries trust the field only at points some frame saw at most this
     # far behind its measured surface (how far, interpolated from the vertices' ``seen_behind``).
     # Deeper, every view saw the point through a surface: training never reaches it (its SDF
@@ -157,7 +146,7 @@ class VoxelConfig:
     # shells behind walls and objects (real 7-Scenes: 2.9 of the 3.3 % of the mesh > 5 cm from
     # TSDF's). One voxel, the lattice's spacing: at the truncation (5 cm) Replica lost 0.7 % of its
     # seen surface (a vertex's distance is measured along the views' rays, longer than to the
-    # surface at oblique views; docs/silhouettes.md). inf: no such limit (the authors')
+    # surface at oblique views; research/silhouettes.md). inf: no such limit (the authors')
     observed_behind: float = 0.1
 
 
@@ -178,7 +167,6 @@ class VoxelMap:
         self.voxel_vertices = np.zeros((0, 8), np.int64)
         self.priors = torch.zeros(0, device=self.device, requires_grad=True)  # truncation units
         self.prior_set = np.zeros(0, bool)
-        self.prior_obs = np.zeros(0, np.uint8)  # fused observations per vertex (prior_fusion_frames)
         # m, per vertex: the least depth behind a frame's measured surface at which a frame saw it
         # (negative: in front of it); +inf: never seen on valid depth (see observed_behind)
         self.seen_behind = np.zeros(0, np.float32)
@@ -195,7 +183,7 @@ class VoxelMap:
         """(meta, arrays): voxel and vertex keys, corner ids, priors and their flags."""
         arrays = {"keys": self.voxels.state_dict(), "vertex_keys": self.vertices.state_dict(),
                   "voxel_vertices": self.voxel_vertices.copy(), "priors": self.priors.detach().cpu().numpy().copy(),
-                  "prior_set": self.prior_set.copy(), "prior_obs": self.prior_obs.copy(),
+                  "prior_set": self.prior_set.copy(),
                   "seen_behind": self.seen_behind.copy(), "trained": self.trained.copy()}
         return {"voxels_refused": self.refused}, arrays
 
@@ -205,7 +193,7 @@ class VoxelMap:
         out.voxels, out.vertices = copy.deepcopy(self.voxels), copy.deepcopy(self.vertices)
         out.voxel_vertices = self.voxel_vertices.copy()
         out.priors = self.priors.detach().clone()
-        out.prior_set, out.prior_obs = self.prior_set.copy(), self.prior_obs.copy()
+        out.prior_set = self.prior_set.copy()
         out.seen_behind = self.seen_behind.copy()
         out.trained = self.trained.copy()
         return out
@@ -216,8 +204,6 @@ class VoxelMap:
         self.voxel_vertices = arrays["voxel_vertices"].astype(np.int64)
         self.priors = torch.from_numpy(np.asarray(arrays["priors"], np.float32)).to(self.device).requires_grad_(True)
         self.prior_set = arrays["prior_set"].astype(bool)
-        self.prior_obs = (arrays["prior_obs"].astype(np.uint8) if "prior_obs" in arrays
-                          else np.zeros(len(self.prior_set), np.uint8))
         # a state from before the record: every vertex counts as seen (the support it was saved with)
         self.seen_behind = (arrays["seen_behind"].astype(np.float32) if "seen_behind" in arrays
                             else np.full(len(self.prior_set), -np.inf, np.float32))
@@ -266,13 +252,10 @@ class VoxelMap:
             self._insert(new)
         ids = self.voxels.find(cand)
         ids = ids[ids >= 0]  # the allocated voxels this frame observes
-        # their vertices' projective SDF, once: the record, the priors' retry and fusion all read it
+        # their vertices' projective SDF, once: the record and the priors' retry both read it
         vid = np.unique(self.voxel_vertices[ids].reshape(-1))
         sdf, valid = self._projective_sdf(vid, depth, intr, c2w)
         self._record_seen(vid, sdf, valid)
-        if self.cfg.prior_fusion_frames > 0:
-            self._fuse_priors(vid, sdf, valid)
-            return new
         if self.cfg.prior_retry:  # every voxel this frame sees that still has an unset vertex
             todo = ids[~self.prior_set[self.voxel_vertices[ids]].all(1)]
         else:
@@ -307,7 +290,6 @@ class VoxelMap:
         grown = torch.full((len(fresh),), float(self.cfg.unset_prior), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
-        self.prior_obs = np.concatenate([self.prior_obs, np.zeros(len(fresh), np.uint8)])
         self.seen_behind = np.concatenate([self.seen_behind, np.full(len(fresh), np.inf, np.float32)])
 
     def _projective_sdf(self, vertex_ids: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray
@@ -322,35 +304,6 @@ class VoxelMap:
         vi = np.clip(np.nan_to_num(uv[:, 1]), 0, intr.height - 1).astype(int)
         d[inside] = depth[vi[inside], ui[inside]]
         return d - z, inside & (d > 0)
-
-    def _fuse_priors(self, vid: np.ndarray, sdf: np.ndarray, valid: np.ndarray) -> None:
-        """Running-mean projective priors of vertices ``vid`` (their projective SDF ``sdf`` in this
-        frame, ``valid`` where it is measured) seen fewer than ``prior_fusion_frames`` times (see
-        VoxelConfig)."""
-        fewer = self.prior_obs[vid] < self.cfg.prior_fusion_frames
-        vid, sdf, valid = vid[fewer], sdf[fewer], valid[fewer]
-        if len(vid) == 0:
-            return
-        with np.errstate(invalid="ignore"):
-            band = (sdf > -self.cfg.fusion_behind) & ((sdf < self.cfg.init_range) | (self.cfg.prior_clamp > 0))
-            occluded = valid & (sdf <= -self.cfg.fusion_behind)
-        if self.cfg.fusion_occluded_inside:
-            hidden = vid[occluded & (self.prior_obs[vid] == 0)]
-            if len(hidden):
-                self.priors.data[torch.from_numpy(hidden).to(self.device)] = -float(self.cfg.prior_clamp or 1.0)
-        ok = valid & band
-        t = vid[ok]
-        if len(t) == 0:
-            return
-        c = self.cfg.prior_clamp if self.cfg.prior_clamp > 0 else np.inf
-        v = np.clip(sdf[ok] / self.cfg.truncation, -c, c).astype(np.float32)
-        n = self.prior_obs[t].astype(np.float32)
-        tt = torch.from_numpy(t).to(self.device)
-        old = self.priors.data[tt].cpu().numpy()
-        mean = np.where(n > 0, (old * n + v) / (n + 1), v).astype(np.float32)
-        self.priors.data[tt] = torch.from_numpy(mean).to(self.device)
-        self.prior_obs[t] += 1
-        self.prior_set[t] = True
 
     def _init_priors(self, voxel_ids: np.ndarray, frame_vid: np.ndarray, frame_sdf: np.ndarray,
                      frame_valid: np.ndarray) -> None:

@@ -59,7 +59,7 @@ def profile_document(profile_name: str, device: str, frames: int, components: di
 
 def load_document(source: str, live: Callable[[str], dict] | None = None, map_id: str = "default") -> dict:
     """A profile document from a run directory, a JSON file, or a live service (``zenoh:`` or
-    ``zenoh:<map-id>``: ``live(map_id)`` fetches it, e.g. :func:`h3edge.serving.transport.fetch_profile`)."""
+    ``zenoh:<map-id>``: ``live(map_id)`` fetches it, e.g. :func:`h3edge.serving.client.Client.profile`)."""
     if source.startswith("zenoh:"):
         if live is None:
             raise ValueError(f"{source}: a live profile needs a service connection")

@@ -1,2 +1,3 @@
 """Serving: the map service (ingest, ROS 2 input, mapper thread, queries, checkpoints, live
-outputs), its zenoh transport, the query client and the publishers, systemd integration."""
+outputs), its zenoh server (``server.py``), the typed query client (``client.py``,
+``h3edge.Client``), systemd integration."""

@@ -4,7 +4,7 @@ state directory.
 
 The mapper thread captures (:meth:`Checkpointer.capture`, between frames: the mapper's
 ``state_dict`` plus its decoders as ONNX, versioned with the map); a writer thread writes it
-atomically (:func:`h3edge.serving.checkpoint.write_checkpoint`), one write at a time so
+atomically (:func:`h3edge.mapping.map_file.write_checkpoint`), one write at a time so
 checkpoints land in order. ``<run_dir>/map.h3ckpt`` is the one ``--resume`` reads, with the
 previous one kept beside it as the fallback; ``save_path`` / ``load_path`` name other checkpoint
 files, confined to ``<run_dir>/maps/`` (a query can never write or read outside it).
@@ -12,8 +12,6 @@ files, confined to ``<run_dir>/maps/`` (a query can never write or read outside 
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 import re
 import threading
@@ -25,18 +23,19 @@ from pathlib import Path
 import numpy as np
 
 from h3edge.errors import QueryError
-from h3edge.mapping.mapper import Mapper, MapSettings
-from h3edge.mapping.onnx_decoders import export_decoders
-from h3edge.profiling.timing import Timings
-from h3edge.serving.checkpoint_file import (
+from h3edge.mapping.engine import MapEngine, MapSettings
+from h3edge.mapping.map_file import (
     CHECKPOINT_NAME,
     CheckpointError,
     check_writable,
+    map_record,
     previous_path,
-    read_checkpoint,
+    read_header,
+    read_map,
     remove_leftovers,
     write_checkpoint,
 )
+from h3edge.profiling.timing import Timings
 
 log = logging.getLogger(__name__)
 SAVED_MAPS_DIR = "maps"  # under the run directory: where named saves go and loads come from
@@ -69,15 +68,15 @@ class Checkpointer:
         self._writer: threading.Thread | None = None
 
     # ----------------------------------------------------------------- reading
-    def read_mapper(self, path: Path) -> tuple[Mapper, dict]:
+    def read_mapper(self, path: Path) -> tuple[MapEngine, dict]:
         """The mapper saved in ``path`` and the file's header; CheckpointError / ValueError / KeyError
         when it cannot be used for this map."""
-        header, arrays = read_checkpoint(path)
+        header, _ = read_header(path)
         if header.get("map_id") != self.map_id:
             raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.map_id!r}")
-        return Mapper.from_state_dict(self.settings, header["state"], arrays), header
+        return read_map(path, self.settings)
 
-    def resume(self) -> tuple[Mapper | None, dict | None]:
+    def resume(self) -> tuple[MapEngine | None, dict | None]:
         """(mapper, where it came from) from the newest checkpoint, or from the previous one when the
         newest is missing or unreadable (``fallback`` says so); (None, None) when neither exists;
         CheckpointError when neither can be read."""
@@ -106,14 +105,9 @@ class Checkpointer:
         raise CheckpointError("cannot resume: " + "; ".join(errors))
 
     # ----------------------------------------------------------------- writing
-    def capture(self, mapper: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
+    def capture(self, mapper: MapEngine) -> tuple[dict, dict[str, np.ndarray]]:
         """(header, arrays) of the mapper now (call between frames, on the mapper's thread)."""
-        meta, arrays = mapper.state_dict()
-        for name, model in export_decoders(mapper.field).items():  # versioned with the map
-            arrays[f"onnx/{name}"] = np.frombuffer(model, np.uint8)
-        header = {"map_id": self.map_id, "profile": self.profile_name, "frames_mapped": mapper.frames_mapped,
-                  "settings": dataclasses.asdict(self.settings), "state": meta}
-        return header, arrays
+        return map_record(mapper, self.map_id, self.profile_name)
 
     def write(self, captured: tuple[dict, dict], futures: list[Future] | None = None,
               path: Path | None = None) -> bool:
@@ -123,7 +117,7 @@ class Checkpointer:
         path = self.path if path is None else Path(path)
         t0 = time.perf_counter()
         try:
-            size = write_checkpoint(path, json.loads(json.dumps(header, default=str)), arrays)
+            size = write_checkpoint(path, header, arrays)
             info = {"path": str(path), "frames_mapped": header["frames_mapped"], "bytes": size,
                     "seconds": round(time.perf_counter() - t0, 3), "unix": time.time()}
             if path == self.path:
@@ -150,7 +144,7 @@ class Checkpointer:
                                         daemon=True)
         self._writer.start()
 
-    def due(self, mapper: Mapper, interval_s: float) -> bool:
+    def due(self, mapper: MapEngine, interval_s: float) -> bool:
         """True when a periodic checkpoint is due: ``interval_s`` passed and the map has new frames."""
         return (interval_s > 0 and time.monotonic() - self.last_time > interval_s and mapper.field is not None
                 and mapper.frames_mapped > (self.last or {}).get("frames_mapped", 0))

@@ -5,12 +5,12 @@ observed free space at its cap, and what is left for keyframes (the keyframe set
 from __future__ import annotations
 
 from h3edge.mapping.color_base import ROW_BYTES
-from h3edge.mapping.mapper import RAY_TABLES, MapSettings
+from h3edge.mapping.engine import RAY_TABLES, MapSettings
 
 # Peak bytes per pixel of decoding and mapping one frame beyond the ray table (decoded images,
 # cleaned depth, back-projected points, texture-pattern images, keyframe payload), measured with
-# python -m h3edge.bench.frame_memory: +253 MB at 1920x1080, +1638 MB at 4096x3072 (128-136 B/px,
-# docs/bench_frame_memory.md), rounded up.
+# python -m benchmarks.frame_memory: +253 MB at 1920x1080, +1638 MB at 4096x3072 (128-136 B/px,
+# research/bench_frame_memory.md), rounded up.
 FRAME_SCRATCH_BYTES_PER_PIXEL = 144
 RAY_TABLE_BYTES_PER_PIXEL = 12  # float32 (x, y, z) per pixel, RAY_TABLES of them kept
 ENCODED_BYTES_PER_PIXEL = 7  # the largest encodings: raw_rgb8 + raw_f32
@@ -56,6 +56,4 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
 
 def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
     """Bytes one keyframe of ``frame_pixels`` keeps (:class:`~h3edge.mapping.keyframes.StoredFrame`)."""
-    t = settings.train
-    pooled = 4 * frame_pixels // t.carve_stride ** 2 if t.carve_behind else 0  # carve_behind's pooled depth
-    return frame_pixels * (3 + 2) + 4096 + pooled  # RGB, uint16 depth; voxel ids and scores
+    return frame_pixels * (3 + 2) + 4096  # RGB, uint16 depth; voxel ids and scores

@@ -54,7 +54,7 @@ from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import Frame
 from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
-from h3edge.mapping.mapper import Mapper, MapSettings
+from h3edge.mapping.engine import MapEngine, MapSettings
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.view import MapView
@@ -122,7 +122,7 @@ class MapService:
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
         self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
-        self.mapper = Mapper(self.settings)
+        self.mapper = MapEngine(self.settings)
         self.checkpoints = Checkpointer(self.run_dir, cfg.map_id, profile_name, self.settings, self.mapper.timings,
                                         self._error, after_write=self._write_profile)
         # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
@@ -179,7 +179,7 @@ class MapService:
         self._dropped_at_start = dict(self.mapper.dropped)
 
     # ---------------------------------------------------------------- lifecycle
-    def _adopt(self, mapper: Mapper) -> None:
+    def _adopt(self, mapper: MapEngine) -> None:
         """Map on with ``mapper`` (resumed or loaded): its timings keep this service's log."""
         mapper.timings = self.mapper.timings
         mapper.step_hook = self.mapper.step_hook
@@ -198,7 +198,7 @@ class MapService:
             voxels=dataclasses.replace(st.voxels, min_points=1, max_voxels=10_000),
             mapper=dataclasses.replace(st.mapper, rays_per_iteration=256, extent=4.0),
             texture=dataclasses.replace(st.texture, update_interval=1))
-        m = Mapper(small)
+        m = MapEngine(small)
         intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
         u, v = np.meshgrid(np.arange(64), np.arange(48))
         color = np.where(((u // 8 + v // 8) % 2 == 0)[..., None], np.uint8(200), np.uint8(40)).repeat(3, -1)

@@ -1,0 +1,195 @@
+"""The typed client of a running h3edge service (``from h3edge import Client``): status, profile, mesh,
+render, signed distance, slice, save, load and export over zenoh, answers as numpy arrays and
+dataclasses, errors as exceptions carrying the service's message. It imports neither torch nor
+numba: a planner or a laptop asks a robot's map without the mapping stack.
+
+The query function below it (:func:`query`: one zenoh get, a reply's bytes) is what the client and
+the commands that speak raw payloads share.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from h3edge.geometry.camera import Intrinsics
+from h3edge.io.distance_types import DistanceSample, DistanceSlice
+from h3edge.io.protocol import Keys, decode_frame, pose_to_json
+from h3edge.io.zenoh_session import open_session, zenoh_config
+
+
+class RemoteError(RuntimeError):
+    """The service answered with an error reply (the message is the service's)."""
+
+
+def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None, params: str = "",
+          timeout: float = 60.0) -> bytes:
+    """One query (``payload``: a JSON object, or raw bytes); the reply's bytes, :class:`RemoteError`
+    on an error reply, TimeoutError on none."""
+    selector = f"{key}?{params}" if params else key
+    body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
+    for reply in session.get(selector, payload=body, timeout=timeout):
+        if reply.ok is not None:
+            return reply.ok.payload.to_bytes()
+        raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
+    raise TimeoutError(f"no reply from {selector} within {timeout:.0f} s (is the service running?)")
+
+
+def read_npz(data: bytes) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` reply (sdf, slice), read without pickles."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def wait_for_service(session: zenoh.Session, keys: Keys, timeout: float = 60.0) -> dict:
+    """Poll ``status`` until the service answers; returns its status (TimeoutError after ``timeout`` s)."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            return json.loads(query(session, keys.status, timeout=2.0))
+        except TimeoutError:
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.2)
+
+
+def save_render_reply(data: bytes, out: Path) -> tuple[Path, Path]:
+    """Write a render reply as OUT_color.png + OUT_depth.png (16-bit, mm); returns the paths."""
+    from h3edge.io.protocol import decode_frame
+    from h3edge.io.sequence import write_color, write_depth
+
+    msg = decode_frame(data)
+    out = Path(out)
+    stem = out.with_suffix("") if out.suffix else out
+    cpath, dpath = Path(f"{stem}_color.png"), Path(f"{stem}_depth.png")
+    cpath.parent.mkdir(parents=True, exist_ok=True)
+    write_color(cpath, msg.color)
+    write_depth(dpath, msg.depth, 1000.0)
+    return cpath, dpath
+
+
+class Client:
+    """Queries to the h3edge service of map ``map_id`` over zenoh.
+
+    Usage::
+
+        from h3edge import Client
+
+        with Client("lab", connect=["tcp/robot.local:7447"]) as c:
+            c.wait()                                        # the service's status once it answers
+            color, depth = c.render(c2w, width=320, height=240)
+            c.mesh("glb")                                   # bytes of a glTF binary
+            d = c.signed_distance(points, gradient=True)    # DistanceSample
+            c.save("before-lunch")
+
+    Every method raises :class:`RemoteError` with the service's message when it refuses (a bad or
+    oversized request, nothing mapped yet), TimeoutError when no service answers within ``timeout``
+    seconds. Poses are camera-to-world 4x4 in metres, OpenCV optical axes; points world metres."""
+
+    def __init__(self, map_id: str = "default", config: str | zenoh.Config | None = None, *,
+                 connect: list[str] | None = None, mode: str | None = None, multicast: bool | None = None,
+                 timeout: float = 60.0, session: zenoh.Session | None = None):
+        """``config``: a zenoh JSON5 file or a ``zenoh.Config`` (default: zenoh's defaults: peer,
+        multicast scouting); ``connect`` / ``mode`` / ``multicast`` override it. ``session``: an
+        open session to use instead (the client then does not close it)."""
+        self.keys = Keys.for_map(map_id)
+        self.timeout = timeout
+        if session is None:
+            conf = config if isinstance(config, zenoh.Config) else zenoh_config(config, mode, connect, None, multicast)
+            session = open_session(conf)
+            self._owned = True
+        else:
+            self._owned = False
+        self.session = session
+
+    def close(self) -> None:
+        """Close the zenoh session (when the client opened it)."""
+        if self._owned:
+            self.session.close()
+            self._owned = False
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _ask(self, key: str, payload: dict | bytes | None = None, params: str = "") -> bytes:
+        return query(self.session, key, payload, params, self.timeout)
+
+    # ----------------------------------------------------------------- state
+    def wait(self, timeout: float = 60.0) -> dict:
+        """The service's status as soon as it answers (polling); TimeoutError after ``timeout`` s."""
+        return wait_for_service(self.session, self.keys, timeout)
+
+    def status(self) -> dict:
+        """The service's status: frames mapped and dropped (by reason), queue, training, memory,
+        the map's extent, the last checkpoint (docs/protocol.md)."""
+        return json.loads(self._ask(self.keys.status))
+
+    def profile(self) -> dict:
+        """The timing profile document (per component: count, median, p90 ms; ``table``: as text)."""
+        return json.loads(self._ask(self.keys.profile))
+
+    # --------------------------------------------------------------- queries
+    def mesh(self, format: str = "ply", resolution: int | None = None, aabb=None) -> bytes:
+        """The mesh as a ``ply``, ``glb`` or ``obj`` file's bytes (world metres, vertex colours;
+        ``trimesh.load(io.BytesIO(data), file_type=format)`` reads it). ``resolution``: cells per
+        voxel edge (default: the service's); ``aabb``: (2, 3) metres, only that box."""
+        payload: dict = {"format": format}
+        if resolution is not None:
+            payload["resolution"] = int(resolution)
+        if aabb is not None:
+            payload["aabb"] = np.asarray(aabb, np.float64).reshape(2, 3).tolist()
+        return self._ask(self.keys.mesh, payload)
+
+    def render(self, c2w, width: int = 320, height: int = 240, intrinsics: Intrinsics | None = None,
+               fov_deg: float = 80.0) -> tuple[np.ndarray, np.ndarray]:
+        """The map seen from camera-to-world ``c2w`` (4, 4): colour uint8 (H, W, 3) RGB and z-depth
+        float32 (H, W) metres (0: nothing). ``intrinsics`` (its size wins over ``width`` /
+        ``height``) or a horizontal field of view ``fov_deg``."""
+        payload: dict = {"pose": pose_to_json(np.asarray(c2w, np.float64)), "raw": True}
+        if intrinsics is not None:
+            payload.update(width=intrinsics.width, height=intrinsics.height,
+                           intrinsics={"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx,
+                                       "cy": intrinsics.cy})
+        else:
+            payload.update(width=int(width), height=int(height), fov_deg=float(fov_deg))
+        msg = decode_frame(self._ask(self.keys.render, payload))
+        return msg.color, msg.depth
+
+    def signed_distance(self, points, gradient: bool = False) -> DistanceSample:
+        """Signed distance at world points (N, 3) metres (sent as float32): ``.sdf`` metres (NaN
+        unknown), ``.state`` (0 unknown, 1 free, 2 near, 3 inside), ``.gradient`` (N, 3) when asked."""
+        raw = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3), "<f4").tobytes()
+        a = read_npz(self._ask(self.keys.sdf, raw, "gradient=true" if gradient else ""))
+        return DistanceSample(a["sdf"], a["state"], a.get("gradient"))
+
+    def slice(self, z: float, lo, hi, resolution: float = 0.05) -> DistanceSlice:
+        """Occupancy and distance images at height ``z`` (m) over ``lo`` = (xmin, ymin) .. ``hi`` =
+        (xmax, ymax) metres, ``resolution`` metres a cell (row 0 is the lowest y)."""
+        payload = {"z": float(z), "aabb": [[float(lo[0]), float(lo[1])], [float(hi[0]), float(hi[1])]],
+                   "resolution": float(resolution)}
+        a = read_npz(self._ask(self.keys.slice, payload))
+        meta = json.loads(a["meta"].tobytes().decode())
+        return DistanceSlice(a["occupancy"], a["distance"], tuple(meta["origin"]), float(meta["resolution"]))
+
+    # ---------------------------------------------------------------- files
+    def save(self, name: str | None = None) -> dict:
+        """Checkpoint now: the resume checkpoint, or ``maps/<name>.h3ckpt`` under the service's state
+        directory. Returns where, how many frames and bytes."""
+        return json.loads(self._ask(self.keys.save, {"name": name} if name else {}))
+
+    def load(self, name: str | None = None) -> dict:
+        """Replace the running map with a saved one (``maps/<name>.h3ckpt``; none: the resume
+        checkpoint). Returns what was loaded."""
+        return json.loads(self._ask(self.keys.load, {"name": name} if name else {}))
+
+    def export(self, name: str, format: str = "ply") -> dict:
+        """Write the whole map's mesh to ``exports/<name>.<format>`` on the service's machine."""
+        return json.loads(self._ask(self.keys.export, {"name": name, "format": format}))
