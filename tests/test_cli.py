@@ -112,3 +112,20 @@ def test_version_and_help_defaults():
                if a.option_strings and a.default not in (None, False) and a.default != "==SUPPRESS=="
                and "%(default)" not in (a.help or "")]
     assert not missing, missing
+
+
+def test_progress_bars_only_on_a_terminal(monkeypatch, capsys):
+    """Long loops draw a tqdm bar on a terminal and stay silent (plain log lines) elsewhere."""
+    from h3edge.profiling import progress as p
+
+    monkeypatch.setattr(p, "on_terminal", lambda: False)
+    assert list(p.progress(range(5), 5, "x")) == list(range(5))
+    with p.ProgressBar(5, "x") as bar:
+        bar.update(2, voxels=3)
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(p, "on_terminal", lambda: True)
+    assert list(p.progress(range(5), 5, "render")) == list(range(5))
+    with p.ProgressBar(5, "map") as bar:
+        bar.update(5, voxels=3)
+    err = capsys.readouterr().err
+    assert "render" in err and "map:" in err and "/5" in err

@@ -25,6 +25,7 @@ from h3edge.io.sequence import Sequence, write_color, write_depth
 from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.engine import FrameResult, MapEngine
 from h3edge.mapping.onnx_decoders import export_decoders
+from h3edge.profiling.progress import ProgressBar
 from h3edge.profiling.timing import DurationLog, format_timings
 
 log = logging.getLogger(__name__)
@@ -75,8 +76,13 @@ def map_sequence(seq: Sequence, mapper: MapEngine, frames: int | None = None, st
     idx = list(range(0, len(seq), max(1, stride)))[:frames]
     results = []
     clock = PausableClock()
+    bar_at = [0]  # frames the progress bar has counted
+
+    bar = ProgressBar(len(idx), "map")
 
     def progress(n: int) -> None:
+        bar.update(n - bar_at[0], voxels=len(mapper.voxels), keyframes=len(mapper.keyframes.keyframes))
+        bar_at[0] = n
         if progress_every and n % progress_every == 0:
             log.info("%d/%d frames in, %d voxels, %d keyframes, %d iterations between frames, %.2f s/frame so far",
                      n, len(idx), len(mapper.voxels), len(mapper.keyframes.keyframes),
@@ -88,9 +94,10 @@ def map_sequence(seq: Sequence, mapper: MapEngine, frames: int | None = None, st
         results.append(verb(frame, read_seconds=clock() - t0))
 
     if camera_hz is None:
-        for n, i in enumerate(idx):
-            map_one(i, mapper.process)
-            progress(n + 1)
+        with bar:
+            for n, i in enumerate(idx):
+                map_one(i, mapper.process)
+                progress(n + 1)
         return results
     if camera_hz <= 0:
         raise ValueError(f"camera rate must be > 0 Hz, got {camera_hz}")
@@ -142,6 +149,7 @@ def map_sequence(seq: Sequence, mapper: MapEngine, frames: int | None = None, st
         while mark_due():
             pass
     finally:
+        bar.close()
         if trainer is not None:
             trainer.stop()
     return results

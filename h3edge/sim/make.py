@@ -17,6 +17,7 @@ import numpy as np
 
 from h3edge.geometry.camera import Intrinsics
 from h3edge.io.sequence import write_color, write_depth, write_pose_rows
+from h3edge.profiling.progress import progress
 from h3edge.sim.scene import build_room
 from h3edge.sim.sensor import RoomRenderer, SensorModel, degrade_depth
 from h3edge.sim.trajectory import camera_path, midpoint_poses
@@ -64,7 +65,7 @@ def _write_split(root: Path, renderer: RoomRenderer, spec: SimSpec, poses: np.nd
     (root / "results").mkdir(parents=True, exist_ok=True)
     intr = spec.intrinsics
     times = []
-    for i, T in enumerate(poses):
+    for i, T in enumerate(progress(poses, len(poses), f"render {root.name}")):
         t0 = time.perf_counter()
         rgb, depth, cos = renderer.render(intr, T)
         if sensor.depth_noise or sensor.missing_depth:
