@@ -9,8 +9,12 @@ the paper's value where the paper has one.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
 import json
+import sys
+import textwrap
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +23,14 @@ from h3edge.eval.evaluate import EvalConfig
 from h3edge.io.ros import RosConfig
 from h3edge.mapping.engine import MapSettings
 from h3edge.mapping.onnx_decoders import InferenceConfig
-from h3edge.mapping.settings_file import MAPPING_TABLES, ProfileError, map_settings, read_profile_tables, section
+from h3edge.mapping.settings_file import (
+    MAPPING_TABLES,
+    PROFILES_DIR,
+    ProfileError,
+    map_settings,
+    read_profile_tables,
+    section,
+)
 from h3edge.serving.service import ServiceConfig
 
 
@@ -78,3 +89,67 @@ def parse_variant(spec: str, base: MapSettings) -> tuple[str, MapSettings]:
     """``'LABEL:section.key=value;section.key=value'`` -> (label, ``base`` with those overrides)."""
     label, _, sets = spec.partition(":")
     return label, apply_overrides(base, [x for x in sets.split(";") if x])
+
+
+def field_docs(cls) -> dict[str, str]:
+    """Field name -> its docstring (the string literal under the field in ``cls``'s body)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    out = {}
+    for k, st in enumerate(body):
+        nxt = body[k + 1] if k + 1 < len(body) else None
+        if (isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name) and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
+            out[st.target.id] = " ".join(nxt.value.value.split())
+    return out
+
+
+def sections() -> list[tuple[str, type]]:
+    """(TOML table, settings dataclass) of every table a profile may hold, in file order."""
+    hints = typing.get_type_hints(MapSettings)
+    own = typing.get_type_hints(Profile)
+    return ([(f.name, hints[f.name]) for f in dataclasses.fields(MapSettings)]
+            + [(name, own[name]) for name in ("eval", "service", "inference", "ros")])
+
+
+def _profile_value(profile: Profile, table: str, key: str, default) -> str:
+    """A profile's value of ``[table] key`` for the reference: ``.`` where it is the default."""
+    section_ = getattr(profile.mapping, table) if table in MAPPING_TABLES else getattr(profile, table)
+    value = getattr(section_, key)
+    return "." if value == default else f"`{value!r}`"
+
+
+def reference_markdown() -> str:
+    """docs/configuration.md: every table and key a profile may set, its type, its default, the
+    shipped profiles' values where they differ, and its docstring (``python -m h3edge.config``
+    writes it; a test keeps the file equal to this)."""
+    shipped = sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
+    profiles = {name: load_profile(name) for name in shipped}
+    lines = ["# Configuration reference", "",
+             "Every setting a profile (`h3edge/profiles/*.toml`, or a TOML file of your own passed as",
+             "`--profile PATH` / `Mapper.from_profile(PATH)`) may hold: one table per section, one key per",
+             "field. A key a table does not have is an error naming the file, table and key; a missing key",
+             "takes the default. Where a shipped profile sets another value, its column shows it (`.`: the",
+             "default); `research/decisions.md` says why, by the decision id in the profile's comment.",
+             "Generated from the dataclasses' field docstrings (`python -m h3edge.config >",
+             "docs/configuration.md`); the test suite fails when this file is out of date.", ""]
+    for table, cls in sections():
+        docs = field_docs(cls)
+        hints = typing.get_type_hints(cls)
+        lines += [f"## [{table}]", ""]
+        if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):  # not dataclass's generated one
+            lines += [" ".join(cls.__doc__.split("\n\n")[0].split()), ""]
+        lines += ["| key | type | default | " + " | ".join(shipped) + " | what |",
+                  "|---|---|---|" + "---|" * len(shipped) + "---|"]
+        for f in dataclasses.fields(cls):
+            if hints[f.name] not in (int, float, str, bool):
+                continue  # a nested section: its own table
+            values = [_profile_value(profiles[n], table, f.name, f.default) for n in shipped]
+            lines.append(f"| `{f.name}` | {hints[f.name].__name__} | `{f.default!r}` | " + " | ".join(values)
+                         + f" | {docs.get(f.name, '').replace('|', '/')} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.stdout.write(reference_markdown())

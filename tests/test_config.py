@@ -44,3 +44,26 @@ def test_bad_profiles_are_named(tmp_path, text, msg):
 def test_missing_profile(tmp_path):
     with pytest.raises(ProfileError, match="not found"):
         load_profile(tmp_path / "nope.toml")
+
+
+def test_every_setting_has_a_docstring():
+    """Each key a profile may set has a docstring under its field (what, unit, the paper's value):
+    the configuration reference is generated from them."""
+    import dataclasses
+    import typing
+
+    from h3edge.config import field_docs, sections
+
+    missing = [f"[{table}] {f.name}" for table, cls in sections() for f in dataclasses.fields(cls)
+               if typing.get_type_hints(cls)[f.name] in (int, float, str, bool) and not field_docs(cls).get(f.name)]
+    assert not missing, missing
+
+
+def test_configuration_reference_is_current():
+    """docs/configuration.md is what ``python -m h3edge.config`` writes from the dataclasses now."""
+    from pathlib import Path
+
+    from h3edge.config import reference_markdown
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
+    assert doc.read_text() == reference_markdown(), "regenerate: python -m h3edge.config > docs/configuration.md"

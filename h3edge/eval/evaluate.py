@@ -57,13 +57,20 @@ class MeshRenderer:
 
 @dataclass(frozen=True)
 class EvalConfig:
-    n_points: int = 200_000  # surface samples per mesh (the authors' protocol)
-    cull_eps: float = 0.03  # occlusion tolerance for culling, metres
-    cull_views: int = 60  # poses used for culling (evenly spread over the sequence)
-    completion_threshold: float = 0.05  # completion ratio: GT points within this of the recon, metres
-    view_stride: int = 10  # every n-th training frame is an evaluation view
-    max_views: int = 50  # cap per split
-    depth_error_threshold: float = 0.05  # m: a pixel this far in front of / behind the sensor depth is "off"
+    n_points: int = 200_000
+    """surface samples per mesh (the authors' protocol)"""
+    cull_eps: float = 0.03
+    """occlusion tolerance for culling, metres"""
+    cull_views: int = 60
+    """poses used for culling (evenly spread over the sequence)"""
+    completion_threshold: float = 0.05
+    """completion ratio: GT points within this of the recon, metres"""
+    view_stride: int = 10
+    """every n-th training frame is an evaluation view"""
+    max_views: int = 50
+    """cap per split"""
+    depth_error_threshold: float = 0.05
+    """m: a pixel this far in front of / behind the sensor depth is "off" """
 
 
 def evaluate_geometry(recon: trimesh.Trimesh, gt: trimesh.Trimesh, poses: np.ndarray, intr: Intrinsics,

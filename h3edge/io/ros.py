@@ -270,23 +270,37 @@ def camera_pose(base_pose: np.ndarray, base_to_camera: np.ndarray) -> np.ndarray
 class RosConfig:
     """ROS 2 input (profile table ``[ros]``; ``h3edge serve --ros`` turns it on)."""
 
-    key_style: str = "bridge"  # bridge (zenoh-bridge-ros2dds) | rmw_zenoh
-    key_prefix: str = ""  # bridge: the bridge's namespace prefix on the zenoh side, if any
-    domain: int = 0  # rmw_zenoh: ROS_DOMAIN_ID
+    key_style: str = "bridge"
+    """bridge (zenoh-bridge-ros2dds) | rmw_zenoh"""
+    key_prefix: str = ""
+    """bridge: the bridge's namespace prefix on the zenoh side, if any"""
+    domain: int = 0
+    """rmw_zenoh: ROS_DOMAIN_ID"""
     color_topic: str = "/camera/color/image_raw"
-    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"  # depth registered to the colour camera
+    """sensor_msgs/Image colour topic (rgb8 / bgr8 / rgba8 / bgra8 / mono8)"""
+    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
+    """depth registered to the colour camera"""
     camera_info_topic: str = "/camera/color/camera_info"
+    """sensor_msgs/CameraInfo of the colour camera (the intrinsics)"""
     pose_topic: str = "/odom"
-    pose_type: str = "odometry"  # odometry | pose (PoseStamped) | tf (TFMessage)
-    world_frame: str = ""  # poses must be expressed in this frame ("": any)
-    base_frame: str = "base_link"  # the frame the poses place (Odometry child frame; TF child)
-    camera_frame: str = ""  # images must carry this frame id ("": any)
-    # base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
-    # static_transform_publisher), or "identity" when the poses already are the camera's
+    """the robot's pose topic (see pose_type)"""
+    pose_type: str = "odometry"
+    """odometry | pose (PoseStamped) | tf (TFMessage)"""
+    world_frame: str = ""
+    """poses must be expressed in this frame ("": any)"""
+    base_frame: str = "base_link"
+    """the frame the poses place (Odometry child frame; TF child)"""
+    camera_frame: str = ""
+    """images must carry this frame id ("": any)"""
     base_to_camera: str = ""
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre (mm)
-    pair_tolerance_s: float = 0.02  # colour and depth stamps closer than this are one frame
-    pair_buffer: int = 8  # images of each kind kept waiting for their pair
+    """base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
+    static_transform_publisher), or "identity" when the poses already are the camera's"""
+    depth_scale: float = 1000.0
+    """16UC1 depth units per metre (mm)"""
+    pair_tolerance_s: float = 0.02
+    """colour and depth stamps closer than this are one frame"""
+    pair_buffer: int = 8
+    """images of each kind kept waiting for their pair"""
 
     def __post_init__(self):
         if self.key_style not in KEY_STYLES:

@@ -43,14 +43,16 @@ MAX_CELLS_PER_SIDE = 32  # 32 KB of votes a voxel
 
 @dataclass(frozen=True)
 class VoteConfig:
-    # m, side of a vote cell (0: no votes, the paper's: every band sample behind the depth is a target);
-    # must divide the leaf voxel into whole cells
     cell: float = 0.0
-    margin: float = 0.03  # m beyond a cell the measured depth must lie for a free vote (noise, pose error)
-    min_votes: int = 1  # net votes (free minus just-behind) for a cell to count as seen free
-    # points per training step drawn in cells seen free, where the field must not read inside
-    # (weights.seen_free); 0: the votes only take band targets away
+    """m, side of a vote cell (0: no votes, the paper's: every band sample behind the depth is a target); must divide
+    the leaf voxel into whole cells"""
+    margin: float = 0.03
+    """m beyond a cell the measured depth must lie for a free vote (noise, pose error)"""
+    min_votes: int = 1
+    """net votes (free minus just-behind) for a cell to count as seen free"""
     points: int = 0
+    """points per training step drawn in cells seen free, where the field must not read inside (weights.seen_free); 0:
+    the votes only take band targets away"""
 
     def __post_init__(self) -> None:
         if not (self.cell >= 0):

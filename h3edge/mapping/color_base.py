@@ -60,14 +60,17 @@ _MIN_ROWS = 1 << 15
 
 @dataclass(frozen=True)
 class ColorBaseConfig:
-    # m, side of a fused colour cell (0: no base, the paper's: colour only from the trained field)
     cell: float = 0.0
-    band: int = 1  # cells in front of and behind each measured depth along its ray that take its colour
-    # pixel stride (both axes) of the pixels a frame fuses, at most: less at depths where the fused
-    # pixels would lie more than 2 cells apart on the surface
+    """m, side of a fused colour cell (0: no base, the paper's: colour only from the trained field)"""
+    band: int = 1
+    """cells in front of and behind each measured depth along its ray that take its colour"""
     stride: int = 3
-    max_cells: int = 4_000_000  # cells at most (BYTES_PER_CELL each); new ones past it are refused
-    max_weight: float = 64.0  # observations a cell's running average remembers (lighting drift)
+    """pixel stride (both axes) of the pixels a frame fuses, at most: less at depths where the fused pixels would lie
+    more than 2 cells apart on the surface"""
+    max_cells: int = 4_000_000
+    """cells at most (BYTES_PER_CELL each); new ones past it are refused"""
+    max_weight: float = 64.0
+    """observations a cell's running average remembers (lighting drift)"""
 
     def __post_init__(self) -> None:
         if not self.cell >= 0:

@@ -25,25 +25,38 @@ from h3edge.mapping.voxels import VoxelMap
 
 @dataclass(frozen=True)
 class FieldConfig:
-    geo_levels: int = 4  # L (geometry)
-    geo_features: int = 2  # F
-    geo_log2_table: int = 19  # T = 2^19
-    geo_level_scale: float = 2.0  # finest cell = voxel / 8
+    geo_levels: int = 4
+    """L (geometry)"""
+    geo_features: int = 2
+    """F"""
+    geo_log2_table: int = 19
+    """T = 2^19"""
+    geo_level_scale: float = 2.0
+    """finest cell = voxel / 8"""
     tex_levels: int = 4
+    """L (texture): levels of the texture hash grid (paper: 4)"""
     tex_features: int = 2
+    """F (texture): features per level (paper: 2)"""
     tex_log2_table: int = 19
-    tex_level_scale: float = 3.0  # the paper's "scale difference 3": finest cell = voxel / 27
+    """T = 2^19 rows per texture level (paper)"""
+    tex_level_scale: float = 3.0
+    """the paper's "scale difference 3": finest cell = voxel / 27"""
     sdf_hidden: int = 64
-    sdf_layers: int = 5  # hidden layers of the SDF MLP (the authors' effective default)
+    """hidden width of the SDF residual MLP (paper: 64)"""
+    sdf_layers: int = 5
+    """hidden layers of the SDF MLP (the authors' effective default)"""
     color_hidden: int = 64
+    """hidden width of the colour MLP (paper: 64)"""
     color_layers: int = 2
-    backend: str = "auto"  # hash-grid backend: auto | torch | numba
-    # beta: width of the volume-rendering kernel sigma(s/beta) sigma(-s/beta) on this field's SDF
-    # (truncation units, authors: 0.05), used by training and by rendering alike
+    """hidden layers of the colour MLP (paper: 2)"""
+    backend: str = "auto"
+    """hash-grid backend: auto | torch | numba"""
     beta: float = 0.05
-    # m: the hash grids' level-0 cell. 0 = one cell per octree leaf voxel (the paper's); a value
-    # keeps the grids' resolution fixed while the leaf voxel (the priors' lattice) changes
+    """beta: width of the volume-rendering kernel sigma(s/beta) sigma(-s/beta) on this field's SDF (truncation units,
+    authors: 0.05), used by training and by rendering alike"""
     grid_cell: float = 0.0
+    """m: the hash grids' level-0 cell. 0 = one cell per octree leaf voxel (the paper's); a value keeps the grids'
+    resolution fixed while the leaf voxel (the priors' lattice) changes"""
 
     def __post_init__(self):
         if not self.grid_cell >= 0:  # refused when the profile loads, not at the first frame

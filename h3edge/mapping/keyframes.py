@@ -130,12 +130,19 @@ def gradient_scores(vox: np.ndarray, gradient: np.ndarray, stride: int) -> np.nd
 @dataclass(frozen=True)
 class KeyframeConfig:
     insert_iou: float = 0.85
+    """a frame whose observed voxels overlap the last keyframe's less than this (IoU) is a keyframe (paper: 0.85)"""
     max_interval: int = 10
-    per_iteration: int = 8  # K
+    """frames at most between two keyframes (paper: 10)"""
+    per_iteration: int = 8
+    """K"""
     adaptive_pruning: bool = True
-    gradient_aided: bool = True  # H3's voxel score max(cnt^2 g, 1); False: H2's voxel count
-    max_keyframes: int = 0  # cap (0: none); past it the least informative keyframe is evicted
-    max_bytes: int = 0  # cap on the stored frames' bytes (0: none; the service sets it from its budget)
+    """H3's adaptive pruning: when a selection round has covered every voxel, keyframes it never selected go"""
+    gradient_aided: bool = True
+    """H3's voxel score max(cnt^2 g, 1); False: H2's voxel count"""
+    max_keyframes: int = 0
+    """cap (0: none); past it the least informative keyframe is evicted"""
+    max_bytes: int = 0
+    """cap on the stored frames' bytes (0: none; the service sets it from its budget)"""
 
 
 @dataclass(eq=False)  # identity: frame ids may repeat (a publisher restarting its counter)

@@ -22,18 +22,28 @@ import torch.nn.functional as F
 
 @dataclass(frozen=True)
 class LossWeights:
-    rgb: float = 0.5  # alpha_rgb (authors' config)
-    depth: float = 1.0  # alpha_d
-    sdf: float = 50000.0  # alpha_sdf
-    free_space: float = 10.0  # alpha_fs
-    surface_rgb: float = 0.5  # surface colour points (TrainConfig.surface_color_points; not in the paper)
-    # SDF >= 0 in cells the frames voted free (votes.points; not in the paper), on L_sdf's scale
+    rgb: float = 0.5
+    """alpha_rgb (authors' config)"""
+    depth: float = 1.0
+    """alpha_d"""
+    sdf: float = 50000.0
+    """alpha_sdf"""
+    free_space: float = 10.0
+    """alpha_fs"""
+    surface_rgb: float = 0.5
+    """surface colour points (TrainConfig.surface_color_points; not in the paper)"""
     seen_free: float = 50000.0
+    """SDF >= 0 in cells the frames voted free (votes.points; not in the paper), on L_sdf's scale"""
     s3im: bool = True
+    """S3IM (stochastic structural similarity of re-patched ray batches) added to the RGB loss (paper: on)"""
     s3im_kernel: int = 4
+    """S3IM's SSIM window, pixels of the pseudo-image (paper: 4)"""
     s3im_stride: int = 4
+    """S3IM's window stride (paper: 4)"""
     s3im_repeats: int = 10
+    """S3IM's random re-patchings of the batch (paper: 10)"""
     s3im_patch_width: int = 64
+    """rays per column of S3IM's pseudo-image (paper: 64)"""
 
 
 def depth_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

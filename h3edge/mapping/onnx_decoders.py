@@ -39,15 +39,18 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class InferenceConfig:
-    decoders: str = "onnx"  # onnx | torch: how queries (mesh, render) evaluate the decoders
-    providers: str = "CPUExecutionProvider"  # onnxruntime execution providers, in order of preference
-    threads: int = 0  # onnxruntime intra-op threads (0: onnxruntime's default, one per core)
-    # rows per onnxruntime run: on a CPU, 8k rows keep a 64-wide layer's activations (2 MB) in
-    # cache; one run over 1M rows was 2x slower (research/bench_inference.md). GPUs want large batches.
+    decoders: str = "onnx"
+    """onnx | torch: how queries (mesh, render) evaluate the decoders"""
+    providers: str = "CPUExecutionProvider"
+    """onnxruntime execution providers, in order of preference"""
+    threads: int = 0
+    """onnxruntime intra-op threads (0: onnxruntime's default, one per core)"""
     batch_rows: int = 8192
-    # TensorRT engine and timing cache; empty: the service's <state_dir>/<map_id>/trt_cache, an
-    # offline run's <out>/trt_cache (a new snapshot then reuses the engine instead of rebuilding it)
+    """rows per onnxruntime run: on a CPU, 8k rows keep a 64-wide layer's activations (2 MB) in cache; one run over 1M
+    rows was 2x slower (research/bench_inference.md). GPUs want large batches."""
     trt_cache_dir: str = ""
+    """TensorRT engine and timing cache; empty: the service's <state_dir>/<map_id>/trt_cache, an offline run's
+    <out>/trt_cache (a new snapshot then reuses the engine instead of rebuilding it)"""
 
     def __post_init__(self):
         if self.decoders not in ("onnx", "torch"):

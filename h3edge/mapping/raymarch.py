@@ -42,58 +42,61 @@ from h3edge.mapping.volume_rendering import composite
 
 @dataclass(frozen=True)
 class RenderConfig:
-    # the z-depth range along a ray where the map is sampled: by the renderer, and from ``near`` by
-    # the trainer's free-space samples
-    near: float = 0.05  # m
-    far: float = 10.0  # m, the sensor's max depth (authors: 10 m)
-    coarse_step: float = 0.02  # m, prior march step along z
-    # |prior| (truncation units) within which a ray leaving (entering) the allocated region counts as
-    # reaching the surface just behind (in front of) its face: voxels end where depth points end
-    exit_tolerance: float = 0.1  # measured: 0.1 best on the sim scene, near-best on Replica (0.5 lets grazing rays hit)
+    near: float = 0.05
+    """the z-depth range along a ray where the map is sampled: by the renderer, and from ``near`` by the trainer's
+    free-space samples m"""
+    far: float = 10.0
+    """m, the sensor's max depth (authors: 10 m)"""
+    coarse_step: float = 0.02
+    """m, prior march step along z"""
+    exit_tolerance: float = 0.1
+    """|prior| (truncation units) within which a ray leaving (entering) the allocated region counts as reaching the
+    surface just behind (in front of) its face: voxels end where depth points end measured: 0.1 best on the sim
+    scene, near-best on Replica (0.5 lets grazing rays hit)"""
     fine_samples: int = 9
-    fine_step: float = 0.01  # m, the paper's 1 cm sample spacing
-    chunk: int = 65536  # rays per fine-stage batch
-    retries: int = 2  # marches past a crossing that got no rendering weight
-    # a fine window renders only where its weights sum to this: the field comes within ~7 mm of a
-    # zero crossing (alpha = sigma(s/beta) sigma(-s/beta) is 0.25 at s = 0 and 0.045 at s/beta = 3).
-    # Windows with no surface in them (a prior crossing the residual moved away) march on instead
-    # of rendering at their weighted mean depth.
+    """samples of a fine window around a prior crossing, fine_step apart (9: +-4 cm)"""
+    fine_step: float = 0.01
+    """m, the paper's 1 cm sample spacing"""
+    chunk: int = 65536
+    """rays per fine-stage batch"""
+    retries: int = 2
+    """marches past a crossing that got no rendering weight"""
     min_weight: float = 0.05
-    # a fine window's first + to - crossing of the full SDF is a surface, rendered at the crossing,
-    # whatever the weights (false: the weights alone decide): a field steeper than the unit slope
-    # leaves the 2.5 mm kernel between two 1 cm samples (Replica: 1.4 % of a view rendered through
-    # chair seats; held-out PSNR +0.74 dB and Depth L1 -15 % with it, research/silhouettes.md)
+    """a fine window renders only where its weights sum to this: the field comes within ~7 mm of a zero crossing (alpha
+    = sigma(s/beta) sigma(-s/beta) is 0.25 at s = 0 and 0.045 at s/beta = 3). Windows with no surface in them (a
+    prior crossing the residual moved away) march on instead of rendering at their weighted mean depth."""
     window_crossing: bool = True
-    # in front of each ray's prior crossing the full SDF (prior + residual) is searched at this step
-    # through the allocated voxels: a surface the residual carries where the prior has no crossing
-    # (a table's edge in a voxel whose priors all read free) is rendered instead of stepped through
-    # to the floor behind it (0: prior crossings only); also behind a fine window that held no
-    # surface, up to the next prior crossing. The paper's 1 cm: 2 cm steps miss thin negative shells
-    # (sim Depth L1 0.87 vs 0.78 cm on 6 views) for 25 % less render time
+    """a fine window's first + to - crossing of the full SDF is a surface, rendered at the crossing, whatever the
+    weights (false: the weights alone decide): a field steeper than the unit slope leaves the 2.5 mm kernel between
+    two 1 cm samples (Replica: 1.4 % of a view rendered through chair seats; held-out PSNR +0.74 dB and Depth L1 -15
+    % with it, research/silhouettes.md)"""
     field_step: float = 0.01
-    # rays the prior march leaves without a weighted surface (the residual moved it where the prior
-    # has no crossing) search the full SDF at this step through the allocated voxels they cross,
-    # then render the window at its first crossing (0: off, such rays render empty)
+    """in front of each ray's prior crossing the full SDF (prior + residual) is searched at this step through the
+    allocated voxels: a surface the residual carries where the prior has no crossing (a table's edge in a voxel whose
+    priors all read free) is rendered instead of stepped through to the floor behind it (0: prior crossings only);
+    also behind a fine window that held no surface, up to the next prior crossing. The paper's 1 cm: 2 cm steps miss
+    thin negative shells (sim Depth L1 0.87 vs 0.78 cm on 6 views) for 25 % less render time"""
     fallback_step: float = 0.01
-    # rays per full-SDF search batch, times their allocated samples (median 15 in front of a surface
-    # on the real map; a fallback ray through a room ~100-300): ~70 bytes a sample of scratch
+    """rays the prior march leaves without a weighted surface (the residual moved it where the prior has no crossing)
+    search the full SDF at this step through the allocated voxels they cross, then render the window at its first
+    crossing (0: off, such rays render empty)"""
     search_chunk: int = 4096
-    max_pixels: int = 1280 * 960  # render requests (queries, offline) above this are refused
-    # truncation units: in cells the frames voted free (:mod:`h3edge.mapping.cell_votes`) the SDF a
-    # render or mesh reads is at least this, so a surface the priors or an untrained residual put
-    # where the camera saw through renders as free the moment the votes say so (0: off, the field
-    # as trained)
+    """rays per full-SDF search batch, times their allocated samples (median 15 in front of a surface on the real map; a
+    fallback ray through a room ~100-300): ~70 bytes a sample of scratch"""
+    max_pixels: int = 1280 * 960
+    """render requests (queries, offline) above this are refused"""
     free_floor: float = 0.0
-    # m: the full-SDF searches also find the fused base's first zero crossing (its signed distance,
-    # :mod:`h3edge.mapping.color_base`) and take it where it lies more than this in front of the
-    # field's, and a fine window renders at the base's crossing where the field's lies farther than
-    # this from it or the field has none there: the surface every integrated frame measured, before
-    # training has placed the field's (0: the field's alone)
+    """truncation units: in cells the frames voted free (:mod:`h3edge.mapping.cell_votes`) the SDF a render or mesh
+    reads is at least this, so a surface the priors or an untrained residual put where the camera saw through renders
+    as free the moment the votes say so (0: off, the field as trained)"""
     base_surface: float = 0.0
-    # training rays: the base's surface is read only in allocated voxels where fewer training rays
-    # than this have ended (``VoxelMap.trained``); past it the trained field's surface stands (inf:
-    # in every voxel)
+    """m: the full-SDF searches also find the fused base's first zero crossing (its signed distance,
+    :mod:`h3edge.mapping.color_base`) and take it where it lies more than this in front of the field's, and a fine
+    window renders at the base's crossing where the field's lies farther than this from it or the field has none there:
+    the surface every integrated frame measured, before training has placed the field's (0: the field's alone)"""
     base_trained_rays: float = float("inf")
+    """training rays: the base's surface is read only in allocated voxels where fewer training rays than this have ended
+    (``VoxelMap.trained``); past it the trained field's surface stands (inf: in every voxel)"""
 
 
 def _march_kernel():

@@ -31,36 +31,45 @@ CLASS_NAMES = {PLAIN: "unstructured rich", WEAK: "weak", RICH: "rich with low-fr
 
 @dataclass(frozen=True)
 class TextureConfig:
-    quasi_heterogeneous: bool = True  # False: H2-Mapping's uniform texture grid
-    warp_rich: bool = True  # "w.R": affine warps for rich texture with low-frequency directions
-    warp_weak: bool = True  # "w.W": the scaling warp for weak texture
-    # the scaling-warped (low-frequency) features for every classified voxel, not only weak ones: no
-    # feature block switching on and off between neighbouring voxels of different class (a
-    # departure; measured +0.4-0.5 dB on both simulated scenes, equal on real data, research/textures.md;
-    # False: the paper's, weak voxels only)
+    quasi_heterogeneous: bool = True
+    """False: H2-Mapping's uniform texture grid"""
+    warp_rich: bool = True
+    """"w.R": affine warps for rich texture with low-frequency directions"""
+    warp_weak: bool = True
+    """"w.W": the scaling warp for weak texture"""
     scaling_everywhere: bool = True
-    update_interval: int = 10  # frames between texture pattern determinations (authors)
-    max_directions: int = 2  # M
-    tr_near: float = 0.95  # |cos| above which two line directions are the same direction
-    tr_plane: float = 0.01  # m, summed distance of the plane check
-    tr_weak: float = 0.2  # fused colour gradient below which a voxel is weak texture
-    compression: float = 0.1  # C, of the affine and the scaling warps
-    # Where a voxel's affine-warped region is anchored: at anchor_scale x its centre (normalised
-    # coordinates). 1 is the paper's "about the centre"; a rotated voxel then reaches up to
-    # sqrt(3)/2 voxel from it, so oblique directions overlap the warped regions of neighbours
-    # with the same m. Any value > sqrt(3) keeps them disjoint (tests check it); hashing makes the
-    # spread free (same number of cells, anywhere).
+    """the scaling-warped (low-frequency) features for every classified voxel, not only weak ones: no feature block
+    switching on and off between neighbouring voxels of different class (a departure; measured +0.4-0.5 dB on both
+    simulated scenes, equal on real data, research/textures.md; False: the paper's, weak voxels only)"""
+    update_interval: int = 10
+    """frames between texture pattern determinations (authors)"""
+    max_directions: int = 2
+    """M"""
+    tr_near: float = 0.95
+    """|cos| above which two line directions are the same direction"""
+    tr_plane: float = 0.01
+    """m, summed distance of the plane check"""
+    tr_weak: float = 0.2
+    """fused colour gradient below which a voxel is weak texture"""
+    compression: float = 0.1
+    """C, of the affine and the scaling warps"""
     anchor_scale: float = 2.0
-    line_depth_jump: float = 0.05  # m, a segment whose depth steps more than this between pixels is dropped
-    min_line_length: float = 10.0  # px, shorter segments are ignored
-    stride: int = 2  # pixel stride for the per-voxel gradient statistics (counts scaled back)
-    # levels of the identity-space block, coarsest first (0: all of field.tex_levels, the paper's).
-    # At a CPU budget (2 x ~1,800 rays a frame) the finest identity level (3.7 mm cells) is trained
-    # but not used: zeroing it moves studio's surface colours by 0.12 / 255 and held-out PSNR by
-    # 0.00 dB. Leaving it out (3) is a departure measured in two runs: sim +0.14 / +0.22 dB, studio
-    # -0.01 / +0.40 dB, real +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 % faster; at orin-agx's
-    # 8,192 rays no difference (research/textures.md)
+    """Where a voxel's affine-warped region is anchored: at anchor_scale x its centre (normalised coordinates). 1 is the
+    paper's "about the centre"; a rotated voxel then reaches up to sqrt(3)/2 voxel from it, so oblique directions
+    overlap the warped regions of neighbours with the same m. Any value > sqrt(3) keeps them disjoint (tests check it);
+    hashing makes the spread free (same number of cells, anywhere)."""
+    line_depth_jump: float = 0.05
+    """m, a segment whose depth steps more than this between pixels is dropped"""
+    min_line_length: float = 10.0
+    """px, shorter segments are ignored"""
+    stride: int = 2
+    """pixel stride for the per-voxel gradient statistics (counts scaled back)"""
     identity_levels: int = 0
+    """levels of the identity-space block, coarsest first (0: all of field.tex_levels, the paper's). At a CPU budget (2
+    x ~1,800 rays a frame) the finest identity level (3.7 mm cells) is trained but not used: zeroing it moves
+    studio's surface colours by 0.12 / 255 and held-out PSNR by 0.00 dB. Leaving it out (3) is a departure measured
+    in two runs: sim +0.14 / +0.22 dB, studio -0.01 / +0.40 dB, real +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 %
+    faster; at orin-agx's 8,192 rays no difference (research/textures.md)"""
 
 
 def line_rotation(d: np.ndarray) -> np.ndarray:

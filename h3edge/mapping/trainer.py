@@ -55,30 +55,37 @@ from h3edge.mapping.voxels import PriorAdam, VoxelMap
 
 @dataclass(frozen=True)
 class TrainConfig:
-    lr: float = 1e-2  # one Adam learning rate for everything (authors)
-    step: float = 0.01  # m between band samples (the paper's 1 cm)
-    band_samples: int = 11  # covers +-5 cm = the truncation band
-    # m behind the measured depth the band's samples reach (the paper: the truncation, a symmetric
-    # band); behind a thin object the negative targets of a deep band lie in free space
+    lr: float = 1e-2
+    """one Adam learning rate for everything (authors)"""
+    step: float = 0.01
+    """m between band samples (the paper's 1 cm)"""
+    band_samples: int = 11
+    """covers +-5 cm = the truncation band"""
     band_behind: float = 0.05
-    # m behind the measured depth band samples still take an SDF target (the paper: the truncation);
-    # deeper band samples only carry the colour and depth rendering losses
+    """m behind the measured depth the band's samples reach (the paper: the truncation, a symmetric band); behind a thin
+    object the negative targets of a deep band lie in free space"""
     sdf_behind: float = 0.05
+    """m behind the measured depth band samples still take an SDF target (the paper: the truncation); deeper band
+    samples only carry the colour and depth rendering losses"""
     free_samples: int = 8
-    # free-space samples where the field lives, inside allocated voxels (as the paper's sampler):
-    # measured no better than stratified samples on real Kinect data (research/silhouettes.md), off
+    """stratified free-space samples per ray between near and depth - truncation (paper: 8)"""
     free_in_voxels: bool = False
-    free_candidates: int = 64  # stratified candidates per ray the in-voxel free samples are drawn from
-    # colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel
-    # band sample, the paper's); the skipped samples carry < floor of a ray's colour each
+    """free-space samples where the field lives, inside allocated voxels (as the paper's sampler): measured no better
+    than stratified samples on real Kinect data (research/silhouettes.md), off"""
+    free_candidates: int = 64
+    """stratified candidates per ray the in-voxel free samples are drawn from"""
     color_weight_floor: float = 1e-3
+    """colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel band sample, the
+    paper's); the skipped samples carry < floor of a ray's colour each"""
     surface_aware: bool = True
-    # pixels per iteration whose colour trains the colour field at their measured surface point,
-    # besides the rays (0: the paper's, colour only through volume rendering; the Orin profiles set
-    # 2048: sim +0.8 dB, studio +0.6 dB, real and Replica unchanged; x86-cpu 8192 with its third
-    # iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09; research/continuous_training.md)
+    """the paper's surface-aware SDF rule: no negative targets past the second sign change along a ray"""
     surface_color_points: int = 0
+    """pixels per iteration whose colour trains the colour field at their measured surface point, besides the rays (0:
+    the paper's, colour only through volume rendering; the Orin profiles set 2048: sim +0.8 dB, studio +0.6 dB, real
+    and Replica unchanged; x86-cpu 8192 with its third iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09;
+    research/continuous_training.md)"""
     weights: LossWeights = field(default_factory=LossWeights)
+    """the loss weights: set by the profile's [losses] table (LossWeights)"""
 
 
 @dataclass

@@ -72,36 +72,56 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class ServiceConfig:
     map_id: str = "default"
-    state_dir: str = "/var/lib/h3edge"  # checkpoints (systemd's StateDirectory)
-    checkpoint_interval_s: float = 60.0  # 0: only on save and on stop
-    ingest_queue: int = 2  # frames waiting for the mapper; when full the oldest is dropped
-    pose_wait_s: float = 0.3  # how long a frame waits for a pose after its timestamp
-    pose_max_gap_s: float = 0.1  # interpolate only between poses at most this far apart
-    pose_buffer: int = 4096  # poses kept for association
-    pose_max_speed: float = 20.0  # m/s: two poses implying more are not interpolated between (an outlier)
-    # frames and poses stamped further ahead of this host's clock are refused (future_timestamp /
-    # future_pose): one such stamp would otherwise make every later valid frame stale, for good
+    """the map's name: its zenoh keys (h3edge/<map_id>/...) and its folder under state_dir"""
+    state_dir: str = "/var/lib/h3edge"
+    """checkpoints (systemd's StateDirectory)"""
+    checkpoint_interval_s: float = 60.0
+    """0: only on save and on stop"""
+    ingest_queue: int = 2
+    """frames waiting for the mapper; when full the oldest is dropped"""
+    pose_wait_s: float = 0.3
+    """how long a frame waits for a pose after its timestamp"""
+    pose_max_gap_s: float = 0.1
+    """interpolate only between poses at most this far apart"""
+    pose_buffer: int = 4096
+    """poses kept for association"""
+    pose_max_speed: float = 20.0
+    """m/s: two poses implying more are not interpolated between (an outlier)"""
     max_future_s: float = 3600.0
-    memory_budget_mb: int = 2048  # the map's memory (tables, voxels, keyframes, query snapshots)
-    # frames with more pixels are refused (frame_too_large) before decoding; the memory plan holds
-    # the decode and per-frame buffers of one frame this size
+    """frames and poses stamped further ahead of this host's clock are refused (future_timestamp / future_pose): one
+    such stamp would otherwise make every later valid frame stale, for good"""
+    memory_budget_mb: int = 2048
+    """the map's memory (tables, voxels, keyframes, query snapshots)"""
     max_frame_pixels: int = 1920 * 1080
-    snapshot_max_age_s: float = 2.0  # a query reuses a map copy this young
-    max_mesh_resolution: int = 10  # marching-cubes cells per voxel edge allowed in a query
-    max_query_points: int = 1_000_000  # points in one signed-distance query
-    max_slice_cells: int = 4_000_000  # cells in one occupancy / distance slice (2000 x 2000)
-    query_timeout_s: float = 60.0  # longest a query waits for the mapper thread's map copy
-    # a heavy query (mesh, render, save) still queued after this long gets a deadline error reply
+    """frames with more pixels are refused (frame_too_large) before decoding; the memory plan holds the decode and
+    per-frame buffers of one frame this size"""
+    snapshot_max_age_s: float = 2.0
+    """a query reuses a map copy this young"""
+    max_mesh_resolution: int = 10
+    """marching-cubes cells per voxel edge allowed in a query"""
+    max_query_points: int = 1_000_000
+    """points in one signed-distance query"""
+    max_slice_cells: int = 4_000_000
+    """cells in one occupancy / distance slice (2000 x 2000)"""
+    query_timeout_s: float = 60.0
+    """longest a query waits for the mapper thread's map copy"""
     query_deadline_s: float = 30.0
-    save_min_interval_s: float = 10.0  # save requests closer together than this are refused
-    # live outputs for viewers (serving/live.py): status, new poses, the latest frame and the mesh of
-    # the blocks that changed, every live_interval_s (0: off)
+    """a heavy query (mesh, render, save) still queued after this long gets a deadline error reply"""
+    save_min_interval_s: float = 10.0
+    """save requests closer together than this are refused"""
     live_interval_s: float = 1.0
-    live_block_voxels: int = 8  # leaf voxels per edge of a live mesh block
-    live_max_blocks: int = 64  # block meshes per update (the rest go in the next)
-    live_frame_width: int = 320  # the latest frame's thumbnail width
-    live_refresh_s: float = 60.0  # every block's mesh is rebuilt at least this often (0: only on changes)
-    timings_log_mb: int = 64  # <state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this
+    """live outputs for viewers (serving/live.py): status, new poses, the latest frame and the mesh of the blocks that
+    changed, every live_interval_s (0: off)"""
+    live_block_voxels: int = 8
+    """leaf voxels per edge of a live mesh block"""
+    live_max_blocks: int = 64
+    """block meshes per update (the rest go in the next)"""
+    live_frame_width: int = 320
+    """the latest frame's thumbnail width"""
+    live_refresh_s: float = 60.0
+    """every block's mesh is rebuilt at least this often (0: only on changes)"""
+    timings_log_mb: int = 64
+    """<state_dir>/<map_id>/timings.jsonl (every duration), rotated to .1 past this"""
 
 
 # --------------------------------------------------------------------------------- service
