@@ -24,7 +24,11 @@ import numpy as np
 
 from h3edge.config import load_profile
 from h3edge.io.replica import ReplicaSequence
-from h3edge.mapping.engine import MapEngine
+
+try:
+    from h3edge.mapping.engine import MapEngine
+except ImportError:  # checkouts from before the library façade (issue [2/5])
+    from h3edge.mapping.mapper import Mapper as MapEngine  # type: ignore[no-redef]
 
 try:
     from h3edge.apps.offline import map_sequence
