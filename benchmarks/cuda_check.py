@@ -5,7 +5,8 @@
 
 In one process, a few minutes:
 1. parity of the hash encodings on CPU and CUDA (torch backend, the same table and points):
-   forward values, the touched rows and their gradients, one sparse Adam step;
+   forward values, the touched rows and their gradients, one sparse Adam step
+   (:func:`h3edge.apps.doctor.encoding_parity`, which ``h3edge doctor`` runs too);
 2. the tiny simulated scene mapped with the profile's settings on CUDA (default orin-agx), then a
    mesh and a render at a held-out pose, both evaluated against the scene's ground truth, with
    the per-frame time; the same on CPU for the first frames as a reference;
@@ -27,40 +28,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from h3edge.apps.doctor import encoding_parity
+
 log = logging.getLogger(__name__)
-
-
-def encoding_parity(n: int = 200_000, seed: int = 0, devices: tuple[str, str] = ("cpu", "cuda")) -> dict:
-    """Max |difference| of forward, gradients and one Adam step between grids on two devices."""
-    from h3edge.mapping.hashgrid import HashGrid, HashGridSpec
-
-    bound = np.array([[-1.0, -1.0, -1.0], [3.0, 3.0, 3.0]])
-    spec = HashGridSpec(levels=4, features=2, log2_table=16, base_resolution=16, per_level_scale=2.0)
-    x = torch.rand(n, 3, generator=torch.Generator().manual_seed(seed)) * 4 - 1
-    out = {}
-    res = {}
-    ref, other = devices
-    for key, dev in (("ref", ref), ("other", other)):
-        g = HashGrid(spec, bound, backend="torch", seed=seed, device=torch.device(dev))
-        if key == "other":
-            g.table.data.copy_(res["ref"]["table0"].to(dev))
-        xd = x.to(dev)
-        y = g(xd)
-        (y * torch.arange(y.shape[1], dtype=torch.float32, device=dev)).sum().backward()
-        rows, grads = g.take_sparse_grad()
-        order = torch.argsort(rows)
-        res[key] = {"table0": g.table.detach().clone().cpu(), "y": y.detach().cpu(), "rows": rows[order].cpu(),
-                    "grads": grads[order].cpu()}
-        g._accumulate(rows, grads)
-        g.sparse_adam_step(1e-2)
-        res[key]["table1"] = g.table.detach().cpu()
-    out["forward_max_abs"] = float((res["ref"]["y"] - res["other"]["y"]).abs().max())
-    out["same_rows"] = bool(torch.equal(res["ref"]["rows"], res["other"]["rows"]))
-    out["grad_max_abs"] = float((res["ref"]["grads"] - res["other"]["grads"]).abs().max()) if out["same_rows"] else None
-    out["adam_max_abs"] = float((res["ref"]["table1"] - res["other"]["table1"]).abs().max())
-    out["ok"] = bool(out["forward_max_abs"] < 1e-5 and out["same_rows"] and out["grad_max_abs"] is not None
-                     and out["grad_max_abs"] < 1e-3 and out["adam_max_abs"] < 1e-4)
-    return out
 
 
 def map_and_query(profile_name: str, device: str, frames: int, work: Path) -> dict:

@@ -14,6 +14,7 @@
     h3edge query status|profile|mesh|render|sdf|slice|save|load|export [--out FILE] [...]
     h3edge profile report RUN_DIR|zenoh:[MAP-ID] [--vs OTHER] [--format table|markdown|json]
     h3edge deploy plan [--profile P]   # install-time: profile for this Jetson, unit memory limits
+    h3edge doctor [--profile P] [--json F]   # is this machine ready for the profile
 Every zenoh-speaking command takes --zenoh-config FILE, --map-id ID and the endpoint overrides
 --mode, --connect EP, --listen EP, --no-multicast.
 """
@@ -375,6 +376,12 @@ def _write_or_print(out: str | None, data: bytes) -> None:
         print(data.decode(errors="replace"))
 
 
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from h3edge.apps.doctor import doctor
+
+    return doctor(args.profile, args.json)
+
+
 def _cmd_profile_report(args: argparse.Namespace) -> int:
     from h3edge.profiling.report import load_document, report
 
@@ -541,6 +548,12 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--format", choices=["table", "markdown", "json"], default="table")
     _add_zenoh_args(rp)
     rp.set_defaults(func=_cmd_profile_report)
+
+    dr = sub.add_parser("doctor", help="is this machine ready for a profile: torch and its device, numba, "
+                                       "onnxruntime providers, zenoh, the memory plan, a small map, CUDA parity")
+    dr.add_argument("--profile", default="x86-cpu", help="profile name or TOML path")
+    dr.add_argument("--json", help="also write the checks here")
+    dr.set_defaults(func=_cmd_doctor)
 
     dp = sub.add_parser("deploy", help="install-time helpers").add_subparsers(dest="deploy_command", required=True)
     pl = dp.add_parser("plan", help="profile for this Jetson and the unit's memory limits (KEY=value lines)")

@@ -129,3 +129,17 @@ def test_progress_bars_only_on_a_terminal(monkeypatch, capsys):
         bar.update(5, voxels=3)
     err = capsys.readouterr().err
     assert "render" in err and "map:" in err and "/5" in err
+
+
+def test_doctor_reports_each_check(tmp_path):
+    """``h3edge doctor``: one line per check; the dev profile passes here, a CUDA profile fails on a
+    machine without CUDA, naming why, with exit status 1."""
+    import torch
+
+    p = run("doctor", "--json", str(tmp_path / "d.json"))
+    checks = {c["name"]: c for c in json.loads((tmp_path / "d.json").read_text())}
+    assert {"torch", "numba", "onnxruntime", "zenoh", "memory plan", "map"} <= set(checks)
+    assert checks["map"]["status"] == "ok" and "a render" in checks["map"]["detail"], p.stdout
+    if not torch.cuda.is_available():
+        bad = run("doctor", "--profile", "orin-agx", check=False)
+        assert bad.returncode == 1 and "FAIL  torch" in bad.stdout and "CUDA is not available" in bad.stdout
