@@ -120,7 +120,8 @@ class Mapper:
 
     def __init__(self, settings: MapSettings | None = None, device: str | None = None, *,
                  profile: str = "custom", _engine: _Engine | None = None):
-        """A new, empty map with ``settings`` (default: :class:`MapSettings`, the paper's values);
+        """A new, empty map with ``settings`` (default: :class:`MapSettings`'s defaults, mostly the
+        paper's values; docs/configuration.md);
         ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (default: ``settings.mapper.device``).
         ``profile``: the name saved with the map."""
         if _engine is None:
@@ -159,9 +160,9 @@ class Mapper:
 
     def save(self, path: str | Path, map_id: str = "map") -> int:
         """Write the map to ``path`` (``.h3ckpt``; atomically: a reader sees the old file or the new
-        one, never a torn one) with its settings, its decoders as ONNX and ``map_id``; returns the
-        bytes written. Holds the map only while it copies the state. RuntimeError when nothing is
-        mapped yet."""
+        one, never a torn one; a file it replaces is kept as ``<path>.prev``) with its settings, its
+        decoders as ONNX and ``map_id``; returns the bytes written. Holds the map only while it
+        copies the state. RuntimeError when nothing is mapped yet."""
         return write_checkpoint(Path(path), *map_record(self._engine, map_id, self.profile))
 
     # -------------------------------------------------------------- mapping
