@@ -151,5 +151,57 @@ def reference_markdown() -> str:
     return "\n".join(lines)
 
 
+def profile_comments(name: str) -> dict[tuple[str, str], str]:
+    """(table, key) -> the comment a shipped profile's TOML gives that key (the comment lines right
+    above it and the one on its line), as one line."""
+    out: dict[tuple[str, str], str] = {}
+    table, block = "", []
+    for raw in (PROFILES_DIR / f"{name}.toml").read_text().splitlines():
+        line = raw.strip()
+        if line.startswith("[") and line.endswith("]"):
+            table, block = line[1:-1], []
+        elif line.startswith("#"):
+            block.append(line[1:].strip())
+        elif "=" in line and table:
+            key, _, rest = line.partition("=")
+            trailing = rest.split("#", 1)[1].strip() if "#" in rest else ""
+            out[(table, key.strip())] = " ".join(block + ([trailing] if trailing else []))
+            block = []
+        else:
+            block = []
+    return out
+
+
+def departures_markdown() -> str:
+    """The settings where a device profile departs from ``paper-reference`` (the paper's values),
+    each with the paper's value, every device profile's value and the reason its profile gives (the
+    decision id, the measured effect, the record). ``research/decisions.md`` holds it between
+    ``<!-- departures -->`` marks; a test keeps it current (``python -m h3edge.config --departures``)."""
+    devices = [p.stem for p in sorted(PROFILES_DIR.glob("*.toml")) if p.stem != "paper-reference"]
+    paper = load_profile("paper-reference")
+    profiles = {n: load_profile(n) for n in devices}
+    comments = {n: profile_comments(n) for n in devices}
+    lines = []
+    for table, cls in sections():
+        if table not in MAPPING_TABLES:
+            continue
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if hints[f.name] not in (int, float, str, bool):
+                continue
+            ref = getattr(getattr(paper.mapping, table), f.name)
+            values = {n: getattr(getattr(profiles[n].mapping, table), f.name) for n in devices}
+            if all(v == ref for v in values.values()):
+                continue
+            why = next((comments[n].get((table, f.name)) for n in devices
+                        if values[n] != ref and comments[n].get((table, f.name))), "")
+            if not why and any(v == f.default and v != ref for v in values.values()):
+                why = "The default (no profile sets it): " + field_docs(cls).get(f.name, "")
+            shipped = ", ".join(f"{n} `{values[n]!r}`" for n in devices)
+            lines += [f"- **`[{table}] {f.name}`**: paper `{ref!r}`; {shipped}. "
+                      + (why or "(no reason in the profile: to be written)"), ""]
+    return "\n".join(lines)
+
+
 if __name__ == "__main__":
-    sys.stdout.write(reference_markdown())
+    sys.stdout.write(departures_markdown() if "--departures" in sys.argv[1:] else reference_markdown())

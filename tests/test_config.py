@@ -67,3 +67,18 @@ def test_configuration_reference_is_current():
 
     doc = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
     assert doc.read_text() == reference_markdown(), "regenerate: python -m h3edge.config > docs/configuration.md"
+
+
+def test_every_departure_from_the_paper_has_its_reason_in_the_decisions_log():
+    """research/decisions.md lists every setting where a device profile departs from
+    paper-reference, with the reason that profile gives (a departure without one fails here)."""
+    import re
+    from pathlib import Path
+
+    from h3edge.config import departures_markdown
+
+    want = departures_markdown()
+    assert "no reason in the profile" not in want, [l for l in want.splitlines() if "no reason" in l]
+    log = (Path(__file__).resolve().parents[1] / "research" / "decisions.md").read_text()
+    block = re.search(r"<!-- departures -->\n(.*)<!-- /departures -->", log, re.S)
+    assert block and block.group(1) == want, "regenerate: python -m h3edge.config --departures"
