@@ -32,6 +32,7 @@ from h3edge.eval.metrics import (
 from h3edge.geometry.camera import Intrinsics
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.sequence import Sequence
+from h3edge.profiling.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,7 @@ def evaluate_views(renderer: ViewRenderer, seq: Sequence, stride: int = 1, max_v
     if len(idx) > max_views:
         idx = idx[np.linspace(0, len(idx) - 1, max_views).round().astype(int)]
     ps, ss, dl, cov, times, shares = [], [], [], [], [], []
-    for i in idx:
+    for i in progress(idx, len(idx), "render views", unit="view"):
         f = seq[int(i)]
         t0 = time.perf_counter()
         rgb, depth = renderer.render(f.intrinsics, f.pose)
