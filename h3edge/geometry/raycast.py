@@ -8,7 +8,8 @@ pixel convention of :mod:`h3edge.geometry.camera`.
 The ray casting itself is Open3D's ``RaycastingScene`` (Embree inside, wheels for linux x86-64
 and aarch64), imported only when a :class:`MeshRaycaster` is built: the service and the query
 client never load it. It comes with the ``eval`` extra (``pip install 'h3edge[eval]'``).
-Measured against the embreex binding it replaced: ``python -m benchmarks.raycast``.
+Measured against the embreex binding it replaced: research/bench_raycast.md (the one-off script
+that measured it, ``benchmarks/raycast.py``, is in git history).
 """
 
 from __future__ import annotations
