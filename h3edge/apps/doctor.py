@@ -78,30 +78,16 @@ def encoding_parity(n: int = 200_000, seed: int = 0, devices: tuple[str, str] = 
 
 
 def _smoke_map(settings) -> str:
-    """Integrate, train and render a few synthetic frames on the settings' device; a one-line summary."""
-    from h3edge import Intrinsics, Mapper
+    """Map a few synthetic frames on the settings' device and render them; a one-line summary."""
+    from h3edge.mapping.engine import synthetic_map
 
-    small = dataclasses.replace(
-        settings, field=dataclasses.replace(settings.field, geo_log2_table=12, tex_log2_table=12),
-        voxels=dataclasses.replace(settings.voxels, min_points=1, max_voxels=10_000),
-        mapper=dataclasses.replace(settings.mapper, rays_per_iteration=256, extent=4.0))
-    mapper = Mapper(small)
-    intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
-    u, v = np.meshgrid(np.arange(64), np.arange(48))
-    color = np.where(((u // 8 + v // 8) % 2 == 0)[..., None], np.uint8(200), np.uint8(40)).repeat(3, -1)
-    depth = np.full((48, 64), 1.5, np.float32)
     t0 = time.perf_counter()
-    for i in range(3):
-        pose = np.eye(4)
-        pose[0, 3] = 0.02 * i
-        r = mapper.add_frame(color, depth, pose, intr, timestamp=float(i))
-        if not r.mapped:
-            raise RuntimeError(f"a synthetic frame was dropped: {r.reason}")
-        mapper.train(steps=1)
+    mapper, intr = synthetic_map(settings, frames=3)
     _, d = mapper.render(intr, np.eye(4))
     if not (d > 0).mean() > 0.5:
         raise RuntimeError(f"the render of the synthetic wall covers {100 * (d > 0).mean():.0f} % of the view")
-    return f"{mapper.device}: 3 frames, 3 steps, a render in {time.perf_counter() - t0:.1f} s"
+    steps = sum(mapper.iterations.values())
+    return f"{mapper.device}: 3 frames, {steps} steps, a render in {time.perf_counter() - t0:.1f} s"
 
 
 def _open3d_check() -> Check:

@@ -41,7 +41,6 @@ from pathlib import Path
 import numpy as np
 
 from h3edge.errors import QueryError
-from h3edge.geometry.camera import Intrinsics
 from h3edge.io.protocol import (
     FrameMessage,
     FrameTooLarge,
@@ -54,7 +53,7 @@ from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import Frame
 from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
-from h3edge.mapping.engine import MapEngine, MapSettings
+from h3edge.mapping.engine import MapEngine, MapSettings, synthetic_map
 from h3edge.mapping.mesh import working_bytes
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.view import MapView
@@ -212,21 +211,7 @@ class MapService:
         """Run every kernel once (map two synthetic frames on a throwaway small map, render, mesh),
         so that loading compiled code is start-up cost, not the first frame's or query's. Seconds."""
         t0 = time.perf_counter()
-        st = self.settings
-        small = dataclasses.replace(
-            st, field=dataclasses.replace(st.field, geo_log2_table=12, tex_log2_table=12),
-            voxels=dataclasses.replace(st.voxels, min_points=1, max_voxels=10_000),
-            mapper=dataclasses.replace(st.mapper, rays_per_iteration=256, extent=4.0),
-            texture=dataclasses.replace(st.texture, update_interval=1))
-        m = MapEngine(small)
-        intr = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
-        u, v = np.meshgrid(np.arange(64), np.arange(48))
-        color = np.where(((u // 8 + v // 8) % 2 == 0)[..., None], np.uint8(200), np.uint8(40)).repeat(3, -1)
-        depth = np.full((48, 64), 1.5, np.float32)
-        for i in range(2):
-            pose = np.eye(4)
-            pose[0, 3] = 0.02 * i
-            m.process(Frame(i, float(i), color, depth, pose, intr))
+        m, intr = synthetic_map(self.settings)
         view = m.view().frozen(self.decoders)
         view.render(intr, np.eye(4))
         view.mesh(2)
