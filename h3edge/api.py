@@ -17,9 +17,11 @@ picks CUDA when present).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,13 +32,18 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.io.sequence import Frame
 from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
-from h3edge.mapping.engine import FrameResult, MapSettings
+from h3edge.mapping.engine import FrameResult, MapSettings, synthetic_map
 from h3edge.mapping.engine import MapEngine as _Engine
 from h3edge.mapping.map_file import map_record, read_map, write_checkpoint
+from h3edge.mapping.mesh import working_bytes
+from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.settings_file import map_settings_from_profile
 from h3edge.mapping.view import MapView
+from h3edge.mapping.voxels import unpack
+from h3edge.profiling.timing import Timings
 
-__all__ = ["FrameResult", "MapSnapshot", "Mapper", "as_intrinsics"]
+__all__ = ["DecoderRuntime", "DistanceSample", "DistanceSlice", "FrameResult", "InferenceConfig", "MapSettings",
+           "MapSnapshot", "Mapper", "as_intrinsics", "warm_up"]
 DEFAULT_PROFILE = "x86-cpu"
 
 
@@ -97,6 +104,29 @@ class MapSnapshot:
         """See :meth:`Mapper.slice`."""
         return _slice(self._view, z, lo, hi, resolution)
 
+    @property
+    def voxel_size(self) -> float:
+        """Leaf voxel edge, metres."""
+        return self._view.voxel_size
+
+    def voxel_coords(self) -> np.ndarray:
+        """Integer coordinates (N, 3) int64 of the map's leaf voxels: voxel ``ijk`` spans world
+        ``[ijk, ijk + 1) * voxel_size`` metres."""
+        return unpack(self._view.voxels.voxel_keys)
+
+    def block_meshes(self, blocks, block_voxels: int, resolution: int | None = None) -> list[trimesh.Trimesh]:
+        """Meshes of map blocks ``blocks`` (B, 3) int, each a cube of ``block_voxels`` leaf voxels
+        (block ``b`` holds the voxels with ``voxel_coords() // block_voxels == b``); an empty mesh
+        for a block with no voxel. World coordinates, metres."""
+        return self._view.block_meshes(np.asarray(blocks, np.int64).reshape(-1, 3), int(block_voxels), resolution)
+
+    def mesh_scratch_bytes(self, resolution: int | None = None, aabb=None) -> int:
+        """Peak scratch bytes :meth:`mesh` with these arguments would take, before the mesh itself:
+        what a caller checks against a memory budget before asking."""
+        res = self._view.mesh_resolution if resolution is None else int(resolution)
+        return working_bytes(self._view.voxels.voxel_keys, self._view.voxel_size, res,
+                             None if aabb is None else _aabb(aabb))
+
 
 class Mapper:
     """An H3-Mapping map built from posed RGB-D frames, in this process.
@@ -120,8 +150,8 @@ class Mapper:
 
     def __init__(self, settings: MapSettings | None = None, device: str | None = None, *,
                  profile: str = "custom", _engine: _Engine | None = None):
-        """A new, empty map with ``settings`` (default: :class:`MapSettings`'s defaults, mostly the
-        paper's values; docs/configuration.md);
+        """A new, empty map with ``settings`` (default: :class:`MapSettings`'s defaults, the paper's
+        values; docs/configuration.md);
         ``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (default: ``settings.mapper.device``).
         ``profile``: the name saved with the map."""
         if _engine is None:
@@ -133,6 +163,7 @@ class Mapper:
         self.profile = profile
         self._frame_ids = itertools.count(_engine.frames_mapped + sum(_engine.dropped.values()))
         self._training: BackgroundTraining | None = None
+        self._training_errors = 0  # steps that raised on earlier training threads
 
     # ------------------------------------------------------------- building
     @classmethod
@@ -163,10 +194,30 @@ class Mapper:
         one, never a torn one; a file it replaces is kept as ``<path>.prev``) with its settings, its
         decoders as ONNX and ``map_id``; returns the bytes written. Holds the map only while it
         copies the state. RuntimeError when nothing is mapped yet."""
-        return write_checkpoint(Path(path), *map_record(self._engine, map_id, self.profile))
+        return write_checkpoint(Path(path), *self.capture(map_id))
+
+    def capture(self, map_id: str = "map", profile: str | None = None) -> tuple[dict, dict[str, np.ndarray]]:
+        """The map's saved form now, (header, arrays), holding the map only while it copies:
+        :func:`h3edge.mapping.map_file.write_checkpoint` writes it (on another thread if wanted;
+        :meth:`save` does both). ``profile``: the name recorded (default: this map's). RuntimeError
+        when nothing is mapped yet."""
+        with self._engine.exclusive():
+            return map_record(self._engine, map_id, self.profile if profile is None else profile)
+
+    def replace_map(self, other: Mapper) -> None:
+        """Go on with ``other``'s map (a loaded one) in place of this one, between two training
+        steps: this Mapper's training thread, step hook and timings carry on; ``other`` is spent."""
+        with self._engine.exclusive():
+            engine = other._engine
+            engine.timings, engine.step_hook = self._engine.timings, self._engine.step_hook
+            self._engine, self.profile = engine, other.profile
+            self._frame_ids = itertools.count(engine.frames_mapped + sum(engine.dropped.values()))
+            if self._training is not None:
+                self._training.mapper = engine  # read each step: the next step trains the new map
 
     # -------------------------------------------------------------- mapping
-    def add_frame(self, color, depth, c2w, intrinsics, timestamp: float | None = None) -> FrameResult:
+    def add_frame(self, color, depth, c2w, intrinsics, timestamp: float | None = None, *,
+                  train: bool = False, frame_id: int | None = None, decode_seconds: float = 0.0) -> FrameResult:
         """Integrate one frame into the map's explicit parts (voxels and their SDF priors, free
         space, the fused colour base, the keyframe decision); no training (:meth:`train`).
 
@@ -174,7 +225,12 @@ class Mapper:
         nothing was measured (a uint16 millimetre image: divide by 1000 first). ``c2w``: (4, 4)
         camera-to-world pose, metres, OpenCV optical axes. ``intrinsics``: an ``Intrinsics`` of an
         H x W image, or a 3x3 K. Numpy arrays or torch tensors on any device. ``timestamp``: seconds,
-        increasing (default: the host's monotonic clock now).
+        increasing (default: the host's monotonic clock now). ``train``: also run the profile's
+        ``mapper.iterations`` training steps on this frame and the selected keyframes before
+        returning (the paper's per-frame mapping; the service's when ``train_between_frames`` is
+        off). ``frame_id``: the id logged and returned (default: a counter).
+        ``decode_seconds``: the caller's time reading the frame, added to the ``read`` and
+        ``integration`` timings.
 
         Returns a :class:`FrameResult` (``mapped``; ``reason`` when it was dropped). A frame the map
         cannot use (a non-rigid or far pose, too little valid depth, a stale timestamp) is dropped
@@ -191,8 +247,11 @@ class Mapper:
         pose = _pose(c2w)
         intr = as_intrinsics(intrinsics, col.shape[1], col.shape[0])
         ts = time.monotonic() if timestamp is None else float(timestamp)
-        frame = Frame(next(self._frame_ids), ts, np.ascontiguousarray(col), dep.astype(np.float32), pose, intr)
-        return self._engine.integrate(frame)
+        fid = next(self._frame_ids) if frame_id is None else int(frame_id)
+        frame = Frame(fid, ts, np.ascontiguousarray(col), dep.astype(np.float32, copy=False), pose, intr)
+        if train:
+            return self._engine.process(frame, read_seconds=decode_seconds)
+        return self._engine.integrate(frame, read_seconds=decode_seconds)
 
     def train(self, steps: int | None = None, seconds: float | None = None) -> int:
         """Train the neural fields on the calling thread: ``steps`` optimisation steps, or as many as
@@ -209,18 +268,46 @@ class Mapper:
             done += 1
         return done
 
-    def start_training(self) -> None:
+    def start_training(self, on_error: Callable[[Exception], None] | None = None) -> None:
         """Train on a thread of its own from now on, step after step, beside :meth:`add_frame` on
         the caller's thread (a frame never waits for a step, only for a step's ray draw or update).
-        Numba needs a thread-safe layer (OpenMP or TBB): RuntimeError otherwise."""
+        A step that raises is logged, counted in ``training_errors`` and handed to ``on_error`` (on
+        the training thread); training goes on. Numba needs a thread-safe layer (OpenMP or TBB):
+        RuntimeError otherwise."""
         if self._training is None:
-            self._training = BackgroundTraining(self._engine, unconditional=True).start()
+            self._training = BackgroundTraining(self._engine, on_error=on_error, unconditional=True).start()
 
-    def stop_training(self) -> None:
-        """Stop the training thread after its step in progress (no-op when none runs)."""
+    def stop_training(self, timeout: float = 60.0) -> None:
+        """Stop the training thread after its step in progress, waiting at most ``timeout`` seconds
+        (no-op when none runs)."""
         if self._training is not None:
-            self._training.stop()
+            self._training.stop(timeout)
+            self._training_errors += self._training.errors
             self._training = None
+
+    @property
+    def training_errors(self) -> int:
+        """Training steps on a :meth:`start_training` thread that raised, since this Mapper was made."""
+        return self._training_errors + (self._training.errors if self._training is not None else 0)
+
+    @property
+    def on_step(self) -> Callable[[], None] | None:
+        """Called after every training step, on the thread that ran it (None: nothing). With
+        ``add_frame(train=True)`` it runs between the frame's steps, holding the map: a caller that
+        serves other work there (copies, saves) keeps it waiting at most one step."""
+        return self._engine.step_hook
+
+    @on_step.setter
+    def on_step(self, hook: Callable[[], None] | None) -> None:
+        self._engine.step_hook = hook
+
+    @contextlib.contextmanager
+    def exclusive(self):
+        """``with mapper.exclusive():`` holds the map: no integration and no training step's ray draw
+        or update runs on another thread inside the block (a step's forward and backward passes
+        may). Re-entrant. For a consistent moment across several calls (a copy and a save)."""
+        with self._engine.exclusive():
+            yield self
 
     # -------------------------------------------------------------- queries
     def render(self, intrinsics: Intrinsics, c2w) -> tuple[np.ndarray, np.ndarray]:
@@ -254,19 +341,60 @@ class Mapper:
         metres to the nearest occupied cell (NaN unknown), ``.origin``, ``.resolution``."""
         return self.snapshot().slice(z, lo, hi, resolution)
 
-    def snapshot(self) -> MapSnapshot:
+    def snapshot(self, decoders: DecoderRuntime | None = None) -> MapSnapshot:
         """A frozen copy of the map now, for queries on other threads while mapping goes on
-        (copying takes the map's lock for tens of milliseconds). RuntimeError when nothing is mapped yet."""
+        (copying takes the map's lock for tens of milliseconds). ``decoders``: run the copy's SDF and
+        colour decoders on this onnxruntime (:class:`DecoderRuntime`; its sessions are shared by
+        every copy). RuntimeError when nothing is mapped yet (``empty``)."""
         with self._engine.exclusive():
-            return MapSnapshot(self._engine.view().frozen(), self._engine.frames_mapped)
+            return MapSnapshot(self._engine.view().frozen(decoders), self._engine.frames_mapped)
+
+    def take_changed_voxels(self) -> np.ndarray:
+        """Integer coordinates (N, 3) int64 (as :meth:`MapSnapshot.voxel_coords`) of the voxels around
+        the geometry the frames mapped since the last call allocated or initialised: where a live
+        view should rebuild its mesh. Call it where a snapshot is taken to pair the two."""
+        with self._engine.exclusive():
+            return unpack(self._engine.take_changed_keys())
 
     def stats(self) -> dict:
         """Counts and sizes: ``frames_mapped``, ``dropped`` (by reason), ``iterations`` (training
-        steps by when they ran), ``voxels``, ``keyframes``, ``device``, ``memory_bytes`` (by part),
-        and ``timings`` (per stage: count, median and p90 milliseconds)."""
-        out = self._engine.stats()
-        out["timings"] = self._engine.timings.summary()
-        return out
+        steps by when they ran), ``voxels``, ``voxels_refused``, ``vertices``, ``keyframes`` (and
+        ``_pruned``, ``_evicted``), ``texture_classes``, ``device``, ``memory_bytes`` (by part).
+        Durations by stage: ``timings.summary()``. Read without the map's lock (counts of a moment)."""
+        return self._engine.stats()
+
+    @property
+    def timings(self) -> Timings:
+        """Durations of every stage (``integration``, ``training``, ``render``, ...; ``.summary()``:
+        count, median and p90 milliseconds each); a caller may add its own stages (``.add(name,
+        seconds)``) or give it a sink (``.sink``) that logs every duration."""
+        return self._engine.timings
+
+    @property
+    def frames_mapped(self) -> int:
+        """Frames integrated into the map (dropped ones not counted), across save and load."""
+        return self._engine.frames_mapped
+
+    @property
+    def last_timestamp(self) -> float | None:
+        """Timestamp (seconds, as given to :meth:`add_frame`) of the newest mapped frame; None before one."""
+        return self._engine.last_timestamp
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Frames dropped, by reason (``bad_pose``, ``no_depth``, ...), across save and load."""
+        return dict(self._engine.dropped)
+
+    @property
+    def iterations(self) -> dict[str, int]:
+        """Training steps run: ``frame`` (inline, ``add_frame(train=True)``) and ``between_frames``."""
+        return dict(self._engine.iterations)
+
+    @property
+    def empty(self) -> bool:
+        """True while there is nothing to query (no frame mapped yet): render, snapshot and save
+        raise, mesh is empty."""
+        return self._engine.field is None
 
     @property
     def settings(self) -> MapSettings:
@@ -277,6 +405,19 @@ class Mapper:
     def device(self) -> str:
         """The device the map lives on (``cpu``, ``cuda:0``, ...)."""
         return str(self._engine.device)
+
+
+def warm_up(settings: MapSettings, decoders: DecoderRuntime | None = None) -> float:
+    """Run every integration, training and query kernel once on a throwaway small map with
+    ``settings``' device (two synthetic frames, a render, a mesh), so that loading compiled code is
+    start-up cost and not the first frame's or query's; ``decoders``: warm those sessions too.
+    Seconds taken."""
+    t0 = time.perf_counter()
+    engine, intr = synthetic_map(settings)
+    view = engine.view().frozen(decoders)
+    view.render(intr, np.eye(4))
+    view.mesh(2)
+    return time.perf_counter() - t0
 
 
 def _pose(c2w) -> np.ndarray:

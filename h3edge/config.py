@@ -13,6 +13,7 @@ import ast
 import dataclasses
 import inspect
 import json
+import re
 import sys
 import textwrap
 import typing
@@ -172,16 +173,18 @@ def profile_comments(name: str) -> dict[tuple[str, str], str]:
     return out
 
 
-def departures_markdown() -> str:
-    """The settings where a device profile departs from ``paper-reference`` (the paper's values),
-    each with the paper's value, every device profile's value and the reason its profile gives (the
-    decision id, the measured effect, the record). ``research/decisions.md`` holds it between
-    ``<!-- departures -->`` marks; a test keeps it current (``python -m h3edge.config --departures``)."""
+DECISION_ID = re.compile(r"\bD\d+-\d+\b")
+
+
+def departures() -> list[dict]:
+    """Every mapping setting where a shipped device profile departs from the paper (the dataclass
+    default, which ``paper-reference`` keeps): table, key, the paper's value, each device profile's
+    value, and the decision ids its profile comments cite (empty: none given, which a test refuses)."""
     devices = [p.stem for p in sorted(PROFILES_DIR.glob("*.toml")) if p.stem != "paper-reference"]
-    paper = load_profile("paper-reference")
     profiles = {n: load_profile(n) for n in devices}
     comments = {n: profile_comments(n) for n in devices}
-    lines = []
+    paper = MapSettings()
+    out = []
     for table, cls in sections():
         if table not in MAPPING_TABLES:
             continue
@@ -189,18 +192,28 @@ def departures_markdown() -> str:
         for f in dataclasses.fields(cls):
             if hints[f.name] not in (int, float, str, bool):
                 continue
-            ref = getattr(getattr(paper.mapping, table), f.name)
+            ref = getattr(getattr(paper, table), f.name)
             values = {n: getattr(getattr(profiles[n].mapping, table), f.name) for n in devices}
             if all(v == ref for v in values.values()):
                 continue
-            why = next((comments[n].get((table, f.name)) for n in devices
-                        if values[n] != ref and comments[n].get((table, f.name))), "")
-            if not why and any(v == f.default and v != ref for v in values.values()):
-                why = "The default (no profile sets it): " + field_docs(cls).get(f.name, "")
-            shipped = ", ".join(f"{n} `{values[n]!r}`" for n in devices)
-            lines += [f"- **`[{table}] {f.name}`**: paper `{ref!r}`; {shipped}. "
-                      + (why or "(no reason in the profile: to be written)"), ""]
-    return "\n".join(lines)
+            ids = sorted({d for n in devices if values[n] != ref
+                          for d in DECISION_ID.findall(comments[n].get((table, f.name), ""))})
+            out.append({"table": table, "key": f.name, "paper": ref, "profiles": values, "decisions": ids})
+    return out
+
+
+def departures_markdown() -> str:
+    """:func:`departures` as a markdown table. ``research/decisions.md`` holds it between
+    ``<!-- departures -->`` marks; a test keeps it current (``python -m h3edge.config --departures``)."""
+    rows = departures()
+    devices = list(rows[0]["profiles"]) if rows else []
+    lines = ["| setting | paper | " + " | ".join(devices) + " | decision |",
+             "|---|---|" + "---|" * len(devices) + "---|"]
+    for r in rows:
+        cells = [f"`{r['profiles'][n]!r}`" if r["profiles"][n] != r["paper"] else "=" for n in devices]
+        lines.append(f"| `[{r['table']}] {r['key']}` | `{r['paper']!r}` | " + " | ".join(cells) + " | "
+                     + (", ".join(r["decisions"]) or "**none**") + " |")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -35,3 +35,27 @@ def voxels_near_surface(sdf_fn: SdfFn, bound: np.ndarray, voxel_size: float, mar
     d = sdf_fn(corners.reshape(-1, 3)).reshape(-1, 8)
     near = (d.min(1) < margin) & (d.max(1) > -margin)
     return np.sort(pack(ijk[near]))
+
+
+# The departures from the paper every device profile ships (D0-2..D0-7 and D53-1), which were the
+# dataclass defaults before the defaults became the paper's values (issue [2/5]): tests of those
+# fixes build small settings with them on.
+SHIPPED_FIXES = {
+    "mapper": {"edge_radius": 2, "edge_rays": 0.125, "edge_rays_near_too": True, "mesh_min_support": 0.25,
+               "train_between_frames": True},
+    "voxels": {"prior_clamp": 1.0, "observed_behind": 0.1},
+    "train": {"free_in_voxels": False, "color_weight_floor": 0.001},
+    "texture": {"scaling_everywhere": True, "anchor_scale": 2.0},
+}
+
+
+def with_shipped_fixes(settings, **tables):
+    """``settings`` (a MapSettings) with :data:`SHIPPED_FIXES` on; ``tables``: section name -> dict
+    of further fields to set there (e.g. ``mapper={"train_between_frames": False}``)."""
+    import dataclasses
+
+    out = settings
+    for table in set(SHIPPED_FIXES) | set(tables):
+        values = {**SHIPPED_FIXES.get(table, {}), **tables.get(table, {})}
+        out = dataclasses.replace(out, **{table: dataclasses.replace(getattr(out, table), **values)})
+    return out

@@ -18,7 +18,7 @@ PROBES = np.array([[0.005, 1.925, 0.005], [0.005, 1.985, 0.005], [0.005, 2.015, 
 
 
 def wall_map() -> VoxelMap:
-    vm = VoxelMap(VoxelConfig(voxel_size=0.1, min_points=1))
+    vm = VoxelMap(VoxelConfig(voxel_size=0.1, min_points=1, prior_clamp=1.0))  # votes ship with clamped priors
     vm.allocate(np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
     return vm
 

@@ -6,7 +6,7 @@ from h3edge.mapping.settings_file import PROFILES_DIR, ProfileError
 
 @pytest.mark.parametrize("path", sorted(PROFILES_DIR.glob("*.toml")), ids=lambda p: p.stem)
 def test_every_profile_loads(path):
-    from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
+    from h3edge.mapping.memory_plan import keyframe_bytes, memory_plan
 
     prof = load_profile(path)
     assert prof.name == path.stem
@@ -69,16 +69,33 @@ def test_configuration_reference_is_current():
     assert doc.read_text() == reference_markdown(), "regenerate: python -m h3edge.config > docs/configuration.md"
 
 
-def test_every_departure_from_the_paper_has_its_reason_in_the_decisions_log():
-    """research/decisions.md lists every setting where a device profile departs from
-    paper-reference, with the reason that profile gives (a departure without one fails here)."""
+def test_every_departure_from_the_paper_cites_a_decision_in_the_log():
+    """research/decisions.md lists every setting where a device profile departs from the paper
+    (generated, current), and every departing key's profile comment cites a decision id that has
+    its own entry there (a departure without one fails here)."""
     import re
     from pathlib import Path
 
-    from h3edge.config import departures_markdown
+    from h3edge.config import departures, departures_markdown
 
-    want = departures_markdown()
-    assert "no reason in the profile" not in want, [l for l in want.splitlines() if "no reason" in l]
+    rows = departures()
+    assert rows and not [r for r in rows if not r["decisions"]], [
+        f"[{r['table']}] {r['key']}" for r in rows if not r["decisions"]]
     log = (Path(__file__).resolve().parents[1] / "research" / "decisions.md").read_text()
+    entries = set(re.findall(r"^## (D\d+-\d+):", log, re.M))
+    cited = {d for r in rows for d in r["decisions"]}
+    assert cited <= entries, cited - entries
     block = re.search(r"<!-- departures -->\n(.*)<!-- /departures -->", log, re.S)
-    assert block and block.group(1) == want, "regenerate: python -m h3edge.config --departures"
+    assert block and block.group(1) == departures_markdown(), "regenerate: python -m h3edge.config --departures"
+
+
+def test_the_defaults_are_the_papers_values():
+    """paper-reference sets no mapping key: its settings are the dataclass defaults, the paper's
+    values (issue [2/5]); a profile states each departure (above)."""
+    from pathlib import Path
+
+    from h3edge.mapping.engine import MapSettings
+
+    assert load_profile("paper-reference").mapping == MapSettings()
+    text = (Path(__file__).resolve().parents[1] / "h3edge" / "profiles" / "paper-reference.toml").read_text()
+    assert not [line for line in text.splitlines() if line.startswith("[")], "paper-reference sets no table"

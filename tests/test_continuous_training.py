@@ -15,10 +15,11 @@ from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
 from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.voxels import VoxelConfig
+from tests.helpers import with_shipped_fixes
 
-LEAN = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
-                   voxels=VoxelConfig(min_points=3), field=FieldConfig(sdf_layers=2, geo_log2_table=14,
-                                                                      tex_log2_table=14))
+LEAN = with_shipped_fixes(MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=512, mesh_resolution=2),
+                                      voxels=VoxelConfig(min_points=3),
+                                      field=FieldConfig(sdf_layers=2, geo_log2_table=14, tex_log2_table=14)))
 
 
 def test_nothing_to_train_on_before_a_keyframe_or_when_turned_off(tiny_scene):

@@ -25,11 +25,17 @@ from h3edge.io.protocol import (
     encode_pose,
 )
 from h3edge.mapping.map_file import CheckpointError, read_checkpoint, write_checkpoint
+from h3edge.mapping.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.association import PoseBuffer
-from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.systemd import Notifier
 
 INTR = Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)
+
+
+def _map_inline(mapper, frame) -> None:
+    """Map ``frame`` (an io.sequence.Frame) the paper's way through the library's verbs."""
+    assert mapper.add_frame(frame.color, frame.depth, frame.pose, frame.intrinsics, frame.timestamp,
+                            train=True, frame_id=frame.index).mapped
 POSE = look_at(np.array([1.0, 2.0, 1.5]), np.array([0.0, 0.0, 1.0]))
 
 
@@ -363,7 +369,7 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     seq = ReplicaSequence(tiny_scene)
     svc = MapService(settings, cfg)
     for i in range(2):
-        svc.mapper.process(seq[i])
+        _map_inline(svc.mapper, seq[i])
         svc.checkpoints.write(svc.checkpoints.capture(svc.mapper))
     ckpt = svc.checkpoints.path
     assert (
@@ -379,10 +385,10 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     with pytest.raises(CheckpointError, match="cannot resume"):
         MapService(settings, cfg, resume=True)
     ok = MapService(settings, cfg)
-    ok.mapper.process(seq[0])
+    _map_inline(ok.mapper, seq[0])
     assert ok.stop() is True
     bad = MapService(settings, cfg)
-    bad.mapper.process(seq[0])
+    _map_inline(bad.mapper, seq[0])
     bad.checkpoints.path = tmp_path / "not-a-dir" / "x" / "map.h3ckpt"
     (tmp_path / "not-a-dir").write_text("a file where a directory should be")
     assert bad.stop() is False and bad.last_error["code"] == "checkpoint"
@@ -505,7 +511,7 @@ def test_save_is_rate_limited_and_needs_its_exact_key(tmp_path, tiny_scene):
                            field=FieldConfig(sdf_layers=1, geo_log2_table=12, tex_log2_table=12))
     svc = MapService(settings, ServiceConfig(map_id="m", state_dir=str(tmp_path), checkpoint_interval_s=0.0,
                                              memory_budget_mb=256, save_min_interval_s=30.0))
-    svc.mapper.process(ReplicaSequence(tiny_scene)[0])
+    _map_inline(svc.mapper, ReplicaSequence(tiny_scene)[0])
     assert svc.save()["frames_mapped"] == 1
     with pytest.raises(QueryError, match="save refused.*at most one per 30 s"):
         svc.save()

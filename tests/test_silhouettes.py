@@ -43,6 +43,7 @@ from h3edge.mapping.field import FieldConfig
 from h3edge.mapping.raymarch import RenderConfig
 from h3edge.mapping.voxels import VoxelConfig
 from h3edge.sim.sensor import SensorModel, degrade_depth
+from tests.helpers import SHIPPED_FIXES, with_shipped_fixes
 
 INTR = Intrinsics(320, 240, 280.0, 280.0, 160.0, 120.0)
 SLAT_X = np.arange(-0.30, 0.31, 0.06)  # 3 cm slats, 3 cm gaps
@@ -90,9 +91,9 @@ def frames(mesh: trimesh.Trimesh, n: int, heldout: bool = False, noisy: bool = T
     return out
 
 
-SETTINGS = MapSettings(mapper=MapperConfig(device="cpu", rays_per_iteration=2048, iterations=2, extent=6.4),
-                       voxels=VoxelConfig(min_points=3),
-                       field=FieldConfig(sdf_layers=2, geo_log2_table=16, tex_log2_table=16))
+SETTINGS = with_shipped_fixes(MapSettings(
+    mapper=MapperConfig(device="cpu", rays_per_iteration=2048, iterations=2, extent=6.4),
+    voxels=VoxelConfig(min_points=3), field=FieldConfig(sdf_layers=2, geo_log2_table=16, tex_log2_table=16)))
 
 
 @pytest.fixture(scope="module")
@@ -429,8 +430,14 @@ def slat_band_rendered_within_5cm(m: MapEngine, f: Frame, measured: np.ndarray) 
     return float(np.mean(np.abs(depth[rows[band], cols[band]] - f.depth[rows[band], cols[band]]) < 0.05))
 
 
-def test_defaults_are_the_fixed_ones():
+def test_the_fixes_ship():
+    """The renderer's fixes are the defaults; the departures from the paper these tests check are
+    on in every device profile (tests.helpers.SHIPPED_FIXES, D0-2..D0-7)."""
+    from h3edge.config import load_profile
+
     assert RenderConfig().min_weight >= 0.01 and RenderConfig().fallback_step > 0 and RenderConfig().field_step > 0
-    assert RenderConfig().window_crossing
-    assert VoxelConfig().prior_retry and VoxelConfig().prior_clamp > 0
-    assert MapperConfig().edge_radius == 2
+    assert RenderConfig().window_crossing and VoxelConfig().prior_retry
+    for name in ("x86-cpu", "orin-agx", "orin-nx", "orin-nano"):
+        mapping = load_profile(name).mapping
+        for table, values in SHIPPED_FIXES.items():
+            assert {k: getattr(getattr(mapping, table), k) for k in values} == values, (name, table)

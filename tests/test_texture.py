@@ -117,8 +117,8 @@ def test_affine_warps_of_different_voxels_never_collide():
 
 
 def test_paper_anchor_lets_oblique_neighbours_overlap():
-    """Why anchor_scale defaults to 2: about the centre itself (1), an oblique direction reaches into
-    the warped region of the neighbour with the same direction."""
+    """Why the device profiles set anchor_scale 2 (D0-7): about the centre itself (1, the paper's), an
+    oblique direction reaches into the warped region of the neighbour with the same direction."""
     enc, ijk, warped = _warps(1.0, np.tile(unit([1.0, 1.0, 1.0]), (27, 1)))
     assert _lands_in(enc, ijk, warped[22], 13).mean() > 0.01  # the central voxel and its +x neighbour
 

@@ -150,7 +150,7 @@ def run_checks(profile_name: str) -> list[Check]:
     zen = _version("eclipse-zenoh")
     checks.append(Check("zenoh", OK if zen else FAIL, zen or "eclipse-zenoh is not installed (the service needs it)"))
     checks.append(_open3d_check())
-    from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
+    from h3edge.mapping.memory_plan import keyframe_bytes, memory_plan
 
     plan = memory_plan(profile.mapping, profile.service.memory_budget_mb, keyframe_bytes(profile.mapping),
                        profile.service.max_frame_pixels, profile.service.ingest_queue)

@@ -89,42 +89,32 @@ class MapperConfig:
     """m, farthest valid depth (authors: 10 m); farther pixels are dropped"""
     min_valid_fraction: float = 0.01
     """frames with less valid depth are dropped"""
-    edge_radius: int = 2
-    """depth pixels dropped on the near side of depth edges: those with a neighbour within edge_radius pixels farther by
-    more than edge_jump of their depth (flying and foreground-fattened pixels, :mod:`h3edge.geometry.depth_edges`; 0:
-    keep every pixel, the paper's). A departure, measured with the since-deleted cross-view test on real Kinect data:
-    pixels rendered > 5 cm in front 3.8 -> 3.0 %, Depth L1 -9 %; sim Depth L1 -11 %, PSNR +0.1 dB
-    (research/silhouettes.md)"""
+    edge_radius: int = 0
+    """px: depth pixels with a neighbour within this radius farther by more than edge_jump are left out (flying and
+    foreground-fattened pixels, :mod:`h3edge.geometry.depth_edges`); paper 0 (every pixel); D0-2"""
     edge_jump: float = 0.05
     """relative depth jump within edge_radius pixels that makes a depth edge (0.05: 5 % of the depth)"""
     edge_max_incidence: float = 80.0
     """degrees of incidence up to which a surface's steady depth change is not an edge: at a wide pixel angle the jump
     is raised to match (:func:`~h3edge.geometry.depth_edges.discontinuity_jump`; 160x120 at 95 px focal: 5 % -> 12 %,
     which keeps the 32 % of a tiny room's pixels the 5 % test dropped; 640x480 Kinect or Replica frames keep 5 %)"""
-    edge_rays: float = 0.125
-    """share of each frame's training rays drawn beside its depth edges: on the far side (valid pixels with a neighbour
-    within edge_rays_radius pixels nearer by more than the edge jump), the rays that pass beside a silhouette or through
-    a gap and carve the free space there, and with edge_rays_near_too on the near side as well, the silhouette's own
-    outline (0: every ray drawn uniformly among the valid pixels, the paper's). A departure, measured in two runs per
-    dataset against uniform rays: Replica +0.64/+0.76 dB, studio Depth L1 -12/-16 %, sim Depth L1 -3/-5 %, the real
-    Kinect sequence unchanged (three runs: PSNR +0.04 to +0.06 dB, SSIM -0.001 to +0.001); frames ~3 % slower; 0.25
-    costs the real sequence 0.005 SSIM (research/silhouettes.md)"""
+    edge_rays: float = 0.0
+    """share of each frame's training rays drawn on the far side of its depth edges (rays beside a silhouette or
+    through a gap); paper 0 (uniform among valid pixels); D0-2"""
     edge_rays_radius: int = 8
     """pixels beside a depth edge whose rays count as edge rays (edge_rays)"""
-    edge_rays_near_too: bool = True
-    """also the foreground within edge_rays_radius of its outline"""
+    edge_rays_near_too: bool = False
+    """edge rays also on the near side (the foreground within edge_rays_radius of its outline); paper: none; D0-2"""
     observe_stride: int = 4
     """pixel stride when listing the voxels a frame observes (keyframe policy)"""
     mesh_resolution: int = 8
-    """marching-cubes cells per voxel edge (authors: 8 -> 1.25 cm)"""
-    mesh_min_support: float = 0.25
-    """mesh only cubes whose 8 lattice points each have at least this share of their trilinear weight on vertices whose
-    prior an observation set (0: every allocated voxel, the authors'); the field's phantom surfaces sit where priors are
-    unset (research/silhouettes.md). Support also ends voxels.observed_behind behind the surfaces the frames saw (no
-    back shells)"""
-    train_between_frames: bool = True
-    """train on a thread of its own, apart from integration, in the service and the live replay (false: each frame
-    trains inline with ``iterations`` steps and nothing trains between frames)"""
+    """marching-cubes cells per voxel edge; authors 8 (1.25 cm at 10 cm voxels)"""
+    mesh_min_support: float = 0.0
+    """share of each mesh cube's trilinear weight that must lie on vertices whose prior a frame set (and within
+    voxels.observed_behind of a seen surface); authors 0 (every allocated voxel); D0-3"""
+    train_between_frames: bool = False
+    """train on a thread of its own, every frame integrated as it comes (false: each frame trains inline with
+    ``iterations`` steps); paper false (per-frame mapping); D53-1"""
     seed: int = 0
     """seed of the mapper's random draws (rays, keyframe picks, sampling): the same frames map the same"""
 

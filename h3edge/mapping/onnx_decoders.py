@@ -46,8 +46,7 @@ class InferenceConfig:
     threads: int = 0
     """onnxruntime intra-op threads (0: onnxruntime's default, one per core)"""
     batch_rows: int = 8192
-    """rows per onnxruntime run: on a CPU, 8k rows keep a 64-wide layer's activations (2 MB) in cache; one run over 1M
-    rows was 2x slower (research/bench_inference.md). GPUs want large batches."""
+    """rows per onnxruntime run (a CPU wants ~8k, in cache; a GPU large batches; research/bench_inference.md)"""
     trt_cache_dir: str = ""
     """TensorRT engine and timing cache; empty: the service's <state_dir>/<map_id>/trt_cache, an offline run's
     <out>/trt_cache (a new snapshot then reuses the engine instead of rebuilding it)"""

@@ -86,17 +86,14 @@ class RenderConfig:
     max_pixels: int = 1280 * 960
     """render requests (queries, offline) above this are refused"""
     free_floor: float = 0.0
-    """truncation units: in cells the frames voted free (:mod:`h3edge.mapping.cell_votes`) the SDF a render or mesh
-    reads is at least this, so a surface the priors or an untrained residual put where the camera saw through renders
-    as free the moment the votes say so (0: off, the field as trained)"""
+    """truncation units: the least SDF a render or mesh reads in cells the frames voted free
+    (:mod:`h3edge.mapping.cell_votes`); paper 0 (the field as trained); D53-4"""
     base_surface: float = 0.0
-    """m: the full-SDF searches also find the fused base's first zero crossing (its signed distance,
-    :mod:`h3edge.mapping.color_base`) and take it where it lies more than this in front of the field's, and a fine
-    window renders at the base's crossing where the field's lies farther than this from it or the field has none there:
-    the surface every integrated frame measured, before training has placed the field's (0: the field's alone)"""
+    """m: renders take the fused colour base's zero crossing (:mod:`h3edge.mapping.color_base`) where the field's lies
+    farther than this from it or is missing; paper 0 (the field alone); D53-4"""
     base_trained_rays: float = float("inf")
-    """training rays: the base's surface is read only in allocated voxels where fewer training rays than this have ended
-    (``VoxelMap.trained``); past it the trained field's surface stands (inf: in every voxel)"""
+    """training rays: the base's surface is read only in voxels where fewer training rays than this have ended; paper:
+    no base (inf: every voxel); D53-5"""
 
 
 def _march_kernel():

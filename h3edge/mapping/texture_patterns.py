@@ -37,10 +37,8 @@ class TextureConfig:
     """"w.R": affine warps for rich texture with low-frequency directions"""
     warp_weak: bool = True
     """"w.W": the scaling warp for weak texture"""
-    scaling_everywhere: bool = True
-    """the scaling-warped (low-frequency) features for every classified voxel, not only weak ones: no feature block
-    switching on and off between neighbouring voxels of different class (a departure; measured +0.4-0.5 dB on both
-    simulated scenes, equal on real data, research/textures.md; False: the paper's, weak voxels only)"""
+    scaling_everywhere: bool = False
+    """the scaling-warped (low-frequency) features for every classified voxel; paper false (weak voxels only); D0-7"""
     update_interval: int = 10
     """frames between texture pattern determinations (authors)"""
     max_directions: int = 2
@@ -53,11 +51,9 @@ class TextureConfig:
     """fused colour gradient below which a voxel is weak texture"""
     compression: float = 0.1
     """C, of the affine and the scaling warps"""
-    anchor_scale: float = 2.0
-    """Where a voxel's affine-warped region is anchored: at anchor_scale x its centre (normalised coordinates). 1 is the
-    paper's "about the centre"; a rotated voxel then reaches up to sqrt(3)/2 voxel from it, so oblique directions
-    overlap the warped regions of neighbours with the same m. Any value > sqrt(3) keeps them disjoint (tests check it);
-    hashing makes the spread free (same number of cells, anywhere)."""
+    anchor_scale: float = 1.0
+    """a voxel's affine-warped region is anchored at anchor_scale x its centre (normalised coordinates); paper 1
+    ("about the centre": oblique neighbours with the same direction share features); > sqrt(3) keeps them apart; D0-7"""
     line_depth_jump: float = 0.05
     """m, a segment whose depth steps more than this between pixels is dropped"""
     min_line_length: float = 10.0
@@ -65,11 +61,7 @@ class TextureConfig:
     stride: int = 2
     """pixel stride for the per-voxel gradient statistics (counts scaled back)"""
     identity_levels: int = 0
-    """levels of the identity-space block, coarsest first (0: all of field.tex_levels, the paper's). At a CPU budget (2
-    x ~1,800 rays a frame) the finest identity level (3.7 mm cells) is trained but not used: zeroing it moves
-    studio's surface colours by 0.12 / 255 and held-out PSNR by 0.00 dB. Leaving it out (3) is a departure measured
-    in two runs: sim +0.14 / +0.22 dB, studio -0.01 / +0.40 dB, real +0.01 / +0.02 dB, SSIM -0.002; sim frames 5 %
-    faster; at orin-agx's 8,192 rays no difference (research/textures.md)"""
+    """levels of the identity-space texture block, coarsest first; paper 0 (all of field.tex_levels); D0-1"""
 
 
 def line_rotation(d: np.ndarray) -> np.ndarray:

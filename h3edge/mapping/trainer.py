@@ -69,21 +69,18 @@ class TrainConfig:
     samples only carry the colour and depth rendering losses"""
     free_samples: int = 8
     """stratified free-space samples per ray between near and depth - truncation (paper: 8)"""
-    free_in_voxels: bool = False
-    """free-space samples where the field lives, inside allocated voxels (as the paper's sampler): measured no better
-    than stratified samples on real Kinect data (research/silhouettes.md), off"""
+    free_in_voxels: bool = True
+    """free-space samples inside the allocated voxels a ray crosses (false: stratified along the ray); paper true;
+    D0-5"""
     free_candidates: int = 64
     """stratified candidates per ray the in-voxel free samples are drawn from"""
-    color_weight_floor: float = 1e-3
-    """colour only at band samples whose normalised render weight exceeds this (0: at every in-voxel band sample, the
-    paper's); the skipped samples carry < floor of a ray's colour each"""
+    color_weight_floor: float = 0.0
+    """colour only at band samples whose normalised render weight exceeds this; paper 0 (every band sample); D0-6"""
     surface_aware: bool = True
     """the paper's surface-aware SDF rule: no negative targets past the second sign change along a ray"""
     surface_color_points: int = 0
-    """pixels per iteration whose colour trains the colour field at their measured surface point, besides the rays (0:
-    the paper's, colour only through volume rendering; the Orin profiles set 2048: sim +0.8 dB, studio +0.6 dB, real
-    and Replica unchanged; x86-cpu 8192 with its third iteration: Replica +0.44 dB, sim +0.3-0.5, real -0.09;
-    research/continuous_training.md)"""
+    """pixels per iteration whose colour trains the colour field at their measured surface point, besides the rays;
+    paper 0 (colour only through volume rendering); D0-6"""
     weights: LossWeights = field(default_factory=LossWeights)
     """the loss weights: set by the profile's [losses] table (LossWeights)"""
 

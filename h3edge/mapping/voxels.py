@@ -137,22 +137,14 @@ class VoxelConfig:
     prior_retry: bool = True
     """Retry, in every frame, the unset vertices of the voxels that frame observes (the authors' code does; one try at
     allocation leaves most priors unset on real depth with holes)"""
-    prior_clamp: float = 1.0
-    """0: the paper's rule, vertices more than init_range from the surface stay unset. c > 0: priors are the projective
-    SDF truncated to [-c, c] truncation units, as in TSDF fusion, and a vertex seen more than init_range in front of
-    the surface is set to +c (free space: the free-space loss's own target at c = 1) instead of being left to read as
-    a surface. A departure from the paper, measured on real Kinect data (research/silhouettes.md): -0.6 points of
-    pixels in front."""
+    prior_clamp: float = 0.0
+    """truncation units: c > 0 sets priors to the projective SDF clamped to [-c, c] (as TSDF fusion), vertices seen
+    more than init_range in front of the surface to +c; paper 0 (those vertices stay unset); D0-4"""
     unset_prior: float = 0.0
     """the value an unset prior reads as, truncation units (0 reads as "on the surface")"""
-    observed_behind: float = 0.1
-    """m: the meshes and distance queries trust the field only at points some frame saw at most this far behind its
-    measured surface (how far, interpolated from the vertices' ``seen_behind``). Deeper, every view saw the point
-    through a surface: training never reaches it (its SDF targets end train.sdf_behind, the truncation, behind the
-    depth) and the field there forms back shells behind walls and objects (real 7-Scenes: 2.9 of the 3.3 % of the mesh >
-    5 cm from TSDF's). One voxel, the lattice's spacing: at the truncation (5 cm) Replica lost 0.7 % of its seen surface
-    (a vertex's distance is measured along the views' rays, longer than to the surface at oblique views;
-    research/silhouettes.md). inf: no such limit (the authors')"""
+    observed_behind: float = float("inf")
+    """m: meshes and distance queries trust the field only where some frame saw at most this far behind its measured
+    surface (deeper, training never reaches and back shells form); authors inf (no limit); D0-3"""
 
 
 

@@ -2,8 +2,8 @@
 state and writing it on a writer thread, and saving to / loading from other files under the
 state directory.
 
-The mapper thread captures (:meth:`Checkpointer.capture`, between frames: the mapper's
-``state_dict`` plus its decoders as ONNX, versioned with the map); a writer thread writes it
+The mapper thread captures (:meth:`Checkpointer.capture`, between frames: :meth:`h3edge.Mapper.capture`,
+the map's state plus its decoders as ONNX, versioned with the map); a writer thread writes it
 atomically (:func:`h3edge.mapping.map_file.write_checkpoint`), one write at a time so
 checkpoints land in order. ``<run_dir>/map.h3ckpt`` is the one ``--resume`` reads, with the
 previous one kept beside it as the fallback; ``save_path`` / ``load_path`` name other checkpoint
@@ -22,16 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
+from h3edge.api import Mapper, MapSettings
 from h3edge.errors import QueryError
-from h3edge.mapping.engine import MapEngine, MapSettings
 from h3edge.mapping.map_file import (
     CHECKPOINT_NAME,
     CheckpointError,
     check_writable,
-    map_record,
     previous_path,
     read_header,
-    read_map,
     remove_leftovers,
     write_checkpoint,
 )
@@ -68,15 +66,15 @@ class Checkpointer:
         self._writer: threading.Thread | None = None
 
     # ----------------------------------------------------------------- reading
-    def read_mapper(self, path: Path) -> tuple[MapEngine, dict]:
-        """The mapper saved in ``path`` and the file's header; CheckpointError / ValueError / KeyError
-        when it cannot be used for this map."""
+    def read_mapper(self, path: Path) -> tuple[Mapper, dict]:
+        """The map saved in ``path`` (with this service's settings) and the file's header;
+        CheckpointError / ValueError / KeyError when it cannot be used for this map."""
         header, _ = read_header(path)
         if header.get("map_id") != self.map_id:
             raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.map_id!r}")
-        return read_map(path, self.settings)
+        return Mapper.load(path, self.settings), header
 
-    def resume(self) -> tuple[MapEngine | None, dict | None]:
+    def resume(self) -> tuple[Mapper | None, dict | None]:
         """(mapper, where it came from) from the newest checkpoint, or from the previous one when the
         newest is missing or unreadable (``fallback`` says so); (None, None) when neither exists;
         CheckpointError when neither can be read."""
@@ -99,15 +97,16 @@ class Checkpointer:
                        "created_unix": header["created_unix"], "fallback": path == prev, "skipped": errors}
             if path == prev:
                 log.warning("resumed from the previous checkpoint %s: %s", path, "; ".join(errors))
+            stats = mapper.stats()
             log.info("resumed map %r from %s: %d frames, %d voxels, %d keyframes", self.map_id, path,
-                     mapper.frames_mapped, len(mapper.voxels), len(mapper.keyframes.keyframes))
+                     stats["frames_mapped"], stats["voxels"], stats["keyframes"])
             return mapper, resumed
         raise CheckpointError("cannot resume: " + "; ".join(errors))
 
     # ----------------------------------------------------------------- writing
-    def capture(self, mapper: MapEngine) -> tuple[dict, dict[str, np.ndarray]]:
-        """(header, arrays) of the mapper now (call between frames, on the mapper's thread)."""
-        return map_record(mapper, self.map_id, self.profile_name)
+    def capture(self, mapper: Mapper) -> tuple[dict, dict[str, np.ndarray]]:
+        """(header, arrays) of the map now (call between frames, on the mapper's thread)."""
+        return mapper.capture(self.map_id, self.profile_name)
 
     def write(self, captured: tuple[dict, dict], futures: list[Future] | None = None,
               path: Path | None = None) -> bool:
@@ -144,9 +143,9 @@ class Checkpointer:
                                         daemon=True)
         self._writer.start()
 
-    def due(self, mapper: MapEngine, interval_s: float) -> bool:
+    def due(self, mapper: Mapper, interval_s: float) -> bool:
         """True when a periodic checkpoint is due: ``interval_s`` passed and the map has new frames."""
-        return (interval_s > 0 and time.monotonic() - self.last_time > interval_s and mapper.field is not None
+        return (interval_s > 0 and time.monotonic() - self.last_time > interval_s and not mapper.empty
                 and mapper.frames_mapped > (self.last or {}).get("frames_mapped", 0))
 
     def join(self, timeout: float | None = None) -> None:

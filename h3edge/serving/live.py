@@ -35,7 +35,6 @@ import numpy as np
 import zenoh
 
 from h3edge.io.protocol import FrameMessage, encode_frame
-from h3edge.mapping.voxels import unpack
 
 log = logging.getLogger(__name__)
 
@@ -94,10 +93,9 @@ class LivePublisher:
             self._watched = True
             self._sent.clear()
             self._pending.clear()
-            if svc.mapper.field is not None:
-                keys = svc.view().voxels.voxel_keys
+            if not svc.mapper.empty:
                 self._pending.update(tuple(int(v) for v in b) for b in
-                                     np.unique(np.floor_divide(unpack(keys), self.block_voxels), axis=0))
+                                     np.unique(np.floor_divide(svc.view().voxel_coords(), self.block_voxels), axis=0))
         self._status_pub.put(json.dumps(svc.status()).encode())
         self.session.put(f"{self.keys.base}/live/timings", json.dumps(svc.mapper.timings.summary()).encode())
         poses = svc.take_mapped_poses()
@@ -107,16 +105,16 @@ class LivePublisher:
         latest = svc.latest_frame
         if latest is not None and poses:
             self.session.put(f"{self.keys.base}/live/frame", self._thumbnail(latest))
-        if svc.mapper.field is None:
+        if svc.mapper.empty:
             return {"blocks": 0}
         view = svc.view()
-        changed = svc.take_changed_keys()
+        changed = svc.take_changed_voxels()
         if len(changed):
-            blocks = np.unique(np.floor_divide(unpack(changed), self.block_voxels), axis=0)
+            blocks = np.unique(np.floor_divide(changed, self.block_voxels), axis=0)
             self._pending.update(tuple(int(v) for v in b) for b in blocks)
         if self.refresh_s > 0:  # the stalest share of the map's blocks
             every = [tuple(int(v) for v in b) for b in
-                     np.unique(np.floor_divide(unpack(view.voxels.voxel_keys), self.block_voxels), axis=0)]
+                     np.unique(np.floor_divide(view.voxel_coords(), self.block_voxels), axis=0)]
             share = int(np.ceil(len(every) * self.interval_s / self.refresh_s))
             self._pending.update(sorted(every, key=lambda b: self._sent.get(b, -np.inf))[:share])
         todo = sorted(self._pending, key=lambda b: self._sent.get(b, -np.inf))[: self.max_blocks]

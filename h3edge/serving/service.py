@@ -10,6 +10,9 @@ from the pose stream; it waits up to ``pose_wait_s`` for a pose after its timest
 as ``no_pose``), and maps it (the mapper's own drop codes: ``bad_pose``, ``stale_timestamp``,
 ``no_depth``, ...). A bad message never touches the map.
 
+The map is an :class:`h3edge.Mapper` (the library; this module is one of its clients: it reaches
+the map through the Mapper's verbs, its counts, ``take_changed_voxels`` and its step hook).
+
 Queries (mesh, render) run on the caller's thread against a frozen copy of the map that the
 mapper thread makes between two training steps (so a query waits at most one training
 iteration for it, and mapping is held up only for the copy, tens of ms); a copy younger than
@@ -20,7 +23,7 @@ Checkpoints: every ``checkpoint_interval_s``, on ``save`` and on stop, through t
 :class:`~h3edge.serving.checkpointing.Checkpointer` (the mapper thread captures between frames; its
 writer thread writes atomically).
 
-Memory budget: ``memory_budget_mb`` is split up front (:mod:`h3edge.serving.memory_plan`): hash
+Memory budget: ``memory_budget_mb`` is split up front (:mod:`h3edge.mapping.memory_plan`): hash
 tables and their optimiser state, the voxel map at its cap, a reserve for query snapshots, the
 largest admitted frame's buffers, and what is left for keyframes, which sets the keyframe cap
 (keyframes hold a random subset of their pixels).
@@ -40,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from h3edge.api import DecoderRuntime, DistanceSample, DistanceSlice, InferenceConfig, Mapper, MapSettings, MapSnapshot
+from h3edge.api import warm_up as warm_up_kernels
 from h3edge.errors import QueryError
 from h3edge.io.protocol import (
     FrameMessage,
@@ -50,18 +55,11 @@ from h3edge.io.protocol import (
     encode_frame,
 )
 from h3edge.io.ros import RosConfig
-from h3edge.io.sequence import Frame
-from h3edge.mapping.background import BackgroundTraining
-from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
-from h3edge.mapping.engine import MapEngine, MapSettings, synthetic_map
-from h3edge.mapping.mesh import working_bytes
-from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
-from h3edge.mapping.view import MapView
+from h3edge.mapping.memory_plan import keyframe_bytes, memory_plan
 from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
 from h3edge.serving.checkpointing import EXPORTS_DIR, Checkpointer
 from h3edge.serving.ingest import Ingest, PendingFrame
-from h3edge.serving.memory_plan import keyframe_bytes, memory_plan
 from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
 from h3edge.serving.ros_ingest import RosIngest
 
@@ -141,7 +139,7 @@ class MapService:
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
         self.state_dir = Path(cfg.state_dir)
         self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
-        self.mapper = MapEngine(self.settings)
+        self.mapper = Mapper(self.settings, profile=profile_name)
         self.checkpoints = Checkpointer(self.run_dir, cfg.map_id, profile_name, self.settings, self.mapper.timings,
                                         self._error, after_write=self._write_profile)
         # one set of onnxruntime sessions for every snapshot; TensorRT engines cached with the map
@@ -152,14 +150,13 @@ class MapService:
         # training on a thread of its own, apart from integration (the profile's
         # mapper.train_between_frames); without it each frame trains inline (the paper's iterations)
         # and the map copies are handed out between those steps
-        self.trainer = (BackgroundTraining(self.mapper, on_error=self._training_error)
-                        if self.settings.mapper.train_between_frames else None)
-        if self.trainer is None:
-            self.mapper.step_hook = self._serve_requests
+        self.background_training = self.settings.mapper.train_between_frames
+        if not self.background_training:
+            self.mapper.on_step = self._serve_requests
         if resume:
             resumed, self.resumed_from = self.checkpoints.resume()
             if resumed is not None:
-                self._adopt(resumed)
+                self.mapper.replace_map(resumed)
         self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
         self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error)
                     if ros is not None else None)
@@ -176,7 +173,7 @@ class MapService:
         self._load_requests: list[tuple[Future, Path]] = []
         self._req_lock = threading.Lock()
         self._last_save_request: float | None = None
-        self._view: MapView | None = None
+        self._view: MapSnapshot | None = None
         self._view_time = 0.0
         self._drops = collections.Counter()  # service-level frame drop reasons
         self._recent_mapped: collections.deque[float] = collections.deque(maxlen=300)
@@ -185,7 +182,7 @@ class MapService:
         self.last_error: dict | None = None
         self.latest_frame: FrameMessage | None = None  # the last mapped frame, with its pose (live view)
         self._mapped_poses: collections.deque[tuple[int, np.ndarray]] = collections.deque(maxlen=10_000)
-        self._changed_keys: list[np.ndarray] = []  # voxel keys changed, collected with each map copy
+        self._changed_voxels: list[np.ndarray] = []  # (N, 3) voxels changed, collected with each map copy
         if self.resumed_from and self.resumed_from["fallback"]:
             self._error("checkpoint_fallback", "resumed from the previous checkpoint: "
                         + "; ".join(self.resumed_from["skipped"]))
@@ -195,46 +192,32 @@ class MapService:
         # the checkpoint's counts: status reports this process's frames (received, mapped, dropped
         # since start, so mapped + dropped never exceeds received) beside the map's total
         self._mapped_at_start = self.mapper.frames_mapped
-        self._dropped_at_start = dict(self.mapper.dropped)
+        self._dropped_at_start = self.mapper.dropped
 
     # ---------------------------------------------------------------- lifecycle
-    def _adopt(self, mapper: MapEngine) -> None:
-        """Map on with ``mapper`` (resumed or loaded): its timings keep this service's log."""
-        mapper.timings = self.mapper.timings
-        mapper.step_hook = self.mapper.step_hook
-        self.mapper = mapper
-        if self.trainer is not None:
-            self.trainer.mapper = mapper
-        self.checkpoints.timings = mapper.timings
-
     def warm_up(self) -> float:
-        """Run every kernel once (map two synthetic frames on a throwaway small map, render, mesh),
-        so that loading compiled code is start-up cost, not the first frame's or query's. Seconds."""
-        t0 = time.perf_counter()
-        m, intr = synthetic_map(self.settings)
-        view = m.view().frozen(self.decoders)
-        view.render(intr, np.eye(4))
-        view.mesh(2)
-        return time.perf_counter() - t0
+        """Run every kernel once (:func:`h3edge.api.warm_up`: a throwaway small map, its decoders on
+        this service's runtime), so that loading compiled code is start-up cost, not the first
+        frame's or query's. Seconds."""
+        return warm_up_kernels(self.settings, self.decoders)
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="h3edge-mapper", daemon=True)
         self._thread.start()
-        if self.trainer is not None:
-            self.trainer.start()
+        if self.background_training:
+            self.mapper.start_training(on_error=self._training_error)
 
     def stop(self, checkpoint: bool = True, timeout: float = 60.0) -> bool:
         """Stop mapping (the frame in progress finishes), write a final checkpoint; False when that
         checkpoint was asked for and failed."""
         self._stop.set()
         self.ingest.wake()
-        if self.trainer is not None:
-            self.trainer.stop(timeout)
+        self.mapper.stop_training(timeout)
         if self._thread is not None:
             self._thread.join(timeout)
         self.checkpoints.join(timeout)
         ok = True
-        if checkpoint and self.mapper.field is not None:
+        if checkpoint and not self.mapper.empty:
             ok = self.checkpoints.write(self.checkpoints.capture(self.mapper))
         else:
             self._write_profile()
@@ -290,9 +273,7 @@ class MapService:
 
     def _maybe_checkpoint(self) -> None:
         if self.checkpoints.due(self.mapper, self.cfg.checkpoint_interval_s):
-            with self.mapper.exclusive():
-                captured = self.checkpoints.capture(self.mapper)
-            self.checkpoints.write_async(captured)
+            self.checkpoints.write_async(self.checkpoints.capture(self.mapper))
 
     def _note_iterations(self) -> None:
         """Record (time, iterations so far) for the status's training rate."""
@@ -304,9 +285,9 @@ class MapService:
         between frames (on the training thread), and the training steps that failed."""
         now = time.monotonic()
         log_ = [e for e in list(self._iteration_log) if now - e[0] <= window_s]
-        it = dict(self.mapper.iterations)
+        it = self.mapper.iterations
         out = {"iterations": it, "iterations_per_s": 0.0, "between_frames_share": None,
-               "errors": self.trainer.errors if self.trainer is not None else 0}
+               "errors": self.mapper.training_errors}
         if len(log_) >= 2:
             dt = log_[-1][0] - log_[0][0]
             d_frame, d_idle = log_[-1][1] - log_[0][1], log_[-1][2] - log_[0][2]
@@ -349,9 +330,9 @@ class MapService:
                 self._serve_requests()
                 time.sleep(0.005)
         self.mapper.timings.add("association", time.perf_counter() - t_assoc)
-        frame = Frame(msg.frame_id, msg.timestamp, msg.color, msg.depth, pose, msg.intrinsics)
-        integrate = self.mapper.integrate if self.trainer is not None else self.mapper.process
-        result = integrate(frame, read_seconds=t_assoc - t0)  # decoding is the frame's reading
+        result = self.mapper.add_frame(msg.color, msg.depth, pose, msg.intrinsics, msg.timestamp,
+                                       train=not self.background_training, frame_id=msg.frame_id,
+                                       decode_seconds=t_assoc - t0)
         if result.mapped:
             with self._req_lock:
                 self._mapped_poses.append((msg.timestamp_ns, np.asarray(pose, np.float64)))
@@ -373,8 +354,7 @@ class MapService:
             self._save_requests.clear()
             self._load_requests.clear()
         for fut, path in loads:  # first: a copy or save asked after a load sees the loaded map
-            with self.mapper.exclusive():  # no training step on the map being replaced
-                self._load_now(fut, path)
+            self._load_now(fut, path)
         if views or saves:
             with self.mapper.exclusive():  # no training step while the map is copied
                 self._copy_for(views, saves)
@@ -383,21 +363,21 @@ class MapService:
         """Hand ``views`` a frozen map copy and capture the map for ``saves`` (under the map lock)."""
         if views:
             try:
-                if self.mapper.field is None:
+                if self.mapper.empty:
                     raise QueryError("nothing mapped yet")
-                view = self.mapper.view().frozen(self.decoders)
+                view = self.mapper.snapshot(self.decoders)
                 self._view, self._view_time = view, time.monotonic()
                 with self._req_lock:
-                    self._changed_keys.append(self.mapper.take_changed_keys())
-                    if len(self._changed_keys) > 64:
-                        self._changed_keys = [np.unique(np.concatenate(self._changed_keys))]
+                    self._changed_voxels.append(self.mapper.take_changed_voxels())
+                    if len(self._changed_voxels) > 64:
+                        self._changed_voxels = [np.unique(np.concatenate(self._changed_voxels), axis=0)]
                 for f in views:
                     f.set_result(view)
             except Exception as e:
                 for f in views:
                     f.set_exception(e if isinstance(e, QueryError) else QueryError(f"snapshot failed: {e}"))
         if saves:
-            if self.mapper.field is None:
+            if self.mapper.empty:
                 for f, _ in saves:
                     f.set_exception(QueryError("nothing mapped yet"))
             else:
@@ -414,16 +394,18 @@ class MapService:
             fut.set_exception(QueryError(f"load {path.name}: {e}"))
             return
         old = self.mapper  # this process's counts go on across the swap
-        for k, v in old.dropped.items():
-            if v > self._dropped_at_start.get(k, 0):
-                self._drops[k] += v - self._dropped_at_start.get(k, 0)
-        self._mapped_at_start = mapper.frames_mapped - (old.frames_mapped - self._mapped_at_start)
-        self._dropped_at_start = dict(mapper.dropped)
-        self._adopt(mapper)
+        with old.exclusive():  # no frame or training step between the counts and the swap
+            for k, v in old.dropped.items():
+                if v > self._dropped_at_start.get(k, 0):
+                    self._drops[k] += v - self._dropped_at_start.get(k, 0)
+            self._mapped_at_start = mapper.frames_mapped - (old.frames_mapped - self._mapped_at_start)
+            self._dropped_at_start = mapper.dropped
+            old.replace_map(mapper)
         self._view, self._view_time = None, 0.0
         self._stats = self._collect_stats()
-        log.info("loaded map from %s: %d frames, %d voxels", path, mapper.frames_mapped, len(mapper.voxels))
-        fut.set_result({"path": str(path), "frames_mapped": mapper.frames_mapped, "voxels": len(mapper.voxels),
+        voxels = self._stats.get("voxels", 0)
+        log.info("loaded map from %s: %d frames, %d voxels", path, self.mapper.frames_mapped, voxels)
+        fut.set_result({"path": str(path), "frames_mapped": self.mapper.frames_mapped, "voxels": voxels,
                         "created_unix": header.get("created_unix")})
 
     def _ask(self, requests: list, arg: object = ...) -> object:
@@ -444,14 +426,14 @@ class MapService:
             self._mapped_poses.clear()
         return out
 
-    def take_changed_keys(self) -> np.ndarray:
-        """Keys of the voxels the mapped frames allocated or observed, up to the newest map copy,
-        since the last call."""
+    def take_changed_voxels(self) -> np.ndarray:
+        """Integer coordinates (N, 3) of the voxels the mapped frames changed, up to the newest map
+        copy, since the last call (:meth:`h3edge.Mapper.take_changed_voxels`)."""
         with self._req_lock:
-            parts, self._changed_keys = self._changed_keys, []
-        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+            parts, self._changed_voxels = self._changed_voxels, []
+        return np.unique(np.concatenate(parts), axis=0) if parts else np.zeros((0, 3), np.int64)
 
-    def view(self) -> MapView:
+    def view(self) -> MapSnapshot:
         """A frozen copy of the map, at most ``snapshot_max_age_s`` old."""
         if self._view is not None and time.monotonic() - self._view_time < self.cfg.snapshot_max_age_s:
             return self._view
@@ -499,7 +481,7 @@ class MapService:
         """Signed distance, state and gradient at the request's points (:mod:`h3edge.mapping.distance`)."""
         view = self.view()
         t0 = time.perf_counter()
-        out = signed_distance(view, request.points, request.gradient)
+        out = view.signed_distance(request.points, request.gradient)
         self.mapper.timings.add("sdf_query", time.perf_counter() - t0)
         return out
 
@@ -507,7 +489,7 @@ class MapService:
         """Occupancy and distance images at a height (:mod:`h3edge.mapping.distance`)."""
         view = self.view()
         t0 = time.perf_counter()
-        out = distance_slice(view, request.z, request.lo, request.hi, request.resolution)
+        out = view.slice(request.z, request.lo, request.hi, request.resolution)
         self.mapper.timings.add("slice_query", time.perf_counter() - t0)
         return out
 
@@ -527,8 +509,8 @@ class MapService:
 
     # ----------------------------------------------------------------- queries
     def _collect_stats(self) -> dict:
-        s = self.mapper.stats() if self.mapper.field is not None else {
-            "frames_mapped": self.mapper.frames_mapped, "dropped": dict(self.mapper.dropped), "voxels": 0,
+        s = self.mapper.stats() if not self.mapper.empty else {
+            "frames_mapped": self.mapper.frames_mapped, "dropped": self.mapper.dropped, "voxels": 0,
             "keyframes": 0, "memory_bytes": {}}
         return s
 
@@ -594,7 +576,7 @@ class MapService:
         the query budget."""
         res, box, fmt = request.resolution, request.aabb, request.format
         view = self.view()
-        need = working_bytes(view.voxels.voxel_keys, view.voxel_size, res, box)
+        need = view.mesh_scratch_bytes(res, box)
         if need > self.plan["query_working_set"]:
             raise QueryError(f"a mesh at resolution {res} of this region needs ~{need >> 20} MB of scratch, over this "
                              f"service's {self.plan['query_working_set'] >> 20} MB query budget: use a lower "

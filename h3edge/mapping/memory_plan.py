@@ -1,6 +1,7 @@
-"""The service's memory plan: the byte budget split up front into the hash tables, the voxel cap,
-a query's map copy and scratch, the checkpoint capture, the largest admitted frame's buffers, the
-observed free space at its cap, and what is left for keyframes (the keyframe set's byte cap)."""
+"""A map's memory plan in a byte budget (the service sizes itself with it): the budget split up
+front into the hash tables, the voxel cap, a query's map copy and scratch, the checkpoint capture,
+the largest admitted frame's buffers, the observed free space at its cap, and what is left for
+keyframes (the keyframe set's byte cap)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,103 @@
+"""Host transfers of the torch backend's integration and training step (issue [3/5]): the Orin
+profiles' mapping (``field.backend = "torch"``) run on this machine's CPU with every tensor-to-host
+call h3edge makes counted (:class:`h3edge.profiling.host_transfers.HostTransfers`), per frame's
+integration and per training step, by function and by source line. On CUDA each is a stall.
+
+    python -m benchmarks.host_transfers [--profile orin-agx] [--frames 8] [--out research/bench_host_transfers]
+
+Prints a table and writes JSON (``<out>.json``) and markdown (``<out>.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import statistics
+import tempfile
+from pathlib import Path
+
+from h3edge.config import load_profile
+from h3edge.io import open_sequence
+from h3edge.mapping.engine import MapEngine, MapSettings
+from h3edge.profiling.host_transfers import HostTransfers
+from h3edge.sim.make import PRESETS, make_scene
+
+log = logging.getLogger(__name__)
+
+
+def lean_torch_settings(profile: str = "orin-agx") -> MapSettings:
+    """``profile``'s mapping on the CPU with the torch backend, sized for the tiny simulated scene
+    (160x120: 3 points a voxel; small tables; 1,024 rays a step)."""
+    s = load_profile(profile).mapping
+    return dataclasses.replace(
+        s, mapper=dataclasses.replace(s.mapper, device="cpu", rays_per_iteration=1024),
+        voxels=dataclasses.replace(s.voxels, min_points=3),
+        field=dataclasses.replace(s.field, backend="torch", geo_log2_table=14, tex_log2_table=14))
+
+
+def count_transfers(settings: MapSettings, frames: list) -> dict:
+    """Integrate each frame and run one training step after it, counting host transfers: the
+    per-frame and per-step totals (after the first two frames: the map's first keyframe and field
+    set-up are not the steady state), and the steady steps' counts by function and by line."""
+    m = MapEngine(settings)
+    per_frame, per_step = [], []
+    functions: dict[str, list[int]] = {}
+    lines: dict[str, int] = {}
+    for i, f in enumerate(frames):
+        with HostTransfers() as integ:
+            m.integrate(f)
+        with HostTransfers() as step:
+            trained = m.train_once() is not None
+        if i < 2 or not trained:
+            continue
+        per_frame.append(integ.total)
+        per_step.append(step.total)
+        for k, v in step.by_function().items():
+            functions.setdefault(k, []).append(v)
+        for k, v in step.by_line().items():
+            lines[k] = max(lines.get(k, 0), v)
+    if not per_step:
+        raise RuntimeError("no steady training step ran: more frames needed")
+    return {"frames": len(per_frame), "integration": {"max": max(per_frame), "median": statistics.median(per_frame)},
+            "step": {"max": max(per_step), "median": statistics.median(per_step)},
+            "step_by_function": {k: max(v) for k, v in sorted(functions.items(), key=lambda kv: -max(kv[1]))},
+            "step_by_line": dict(sorted(lines.items(), key=lambda kv: -kv[1]))}
+
+
+def _markdown(result: dict, profile: str) -> str:
+    out = [f"Host transfers, {profile} mapping on the torch backend (CPU), {result['frames']} steady frames: "
+           f"integration {result['integration']['max']} a frame, training step {result['step']['max']} "
+           f"(median {result['step']['median']}).", "", "| step: function | transfers |", "|---|---|"]
+    out += [f"| `{k}` | {v} |" for k, v in result["step_by_function"].items()]
+    out += ["", "| step: line | transfers |", "|---|---|"]
+    out += [f"| `{k}` | {v} |" for k, v in result["step_by_line"].items()]
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--profile", default="orin-agx", help="profile whose mapping settings run (torch backend, CPU)")
+    ap.add_argument("--frames", type=int, default=8, help="frames of the tiny simulated scene")
+    ap.add_argument("--out", default="", help="write <out>.json and <out>.md")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = Path(tmp) / "scene"
+        make_scene(scene, dataclasses.replace(PRESETS["tiny"], frames=max(args.frames, 4)))
+        frames = [f for _, f in zip(range(args.frames), open_sequence(scene))]
+        result = count_transfers(lean_torch_settings(args.profile), frames)
+    text = _markdown(result, args.profile)
+    print(text)
+    if args.out:
+        Path(args.out).with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
+        Path(args.out).with_suffix(".md").write_text(f"<!-- python -m benchmarks.host_transfers --profile "
+                                                     f"{args.profile} --frames {args.frames} --out {args.out} -->\n"
+                                                     + text)
+    return result
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.WARNING)
+    main()

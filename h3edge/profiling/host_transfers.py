@@ -1,0 +1,100 @@
+"""Counting a tensor's trips to the host: every call h3edge code makes that copies a torch tensor's
+data to Python or numpy (``.cpu()``, ``.numpy()``, ``.item()``, ``.tolist()``, ``float()`` /
+``int()`` / ``bool()`` of a tensor, ``np.asarray(tensor)``), by the source line that made it.
+
+On CUDA each is a device-to-host copy and a pipeline stall; on a CPU the same calls are cheap, but
+counting them there proves what a GPU run would do (issue [3/5]: the torch backend's training step
+and integration should stay on the device). ``x.cpu().numpy()`` on one line counts once. Counted:
+the calls h3edge makes itself (torch's own, e.g. an optimiser reading its CPU step counter, are
+not); not seen: the syncs inside torch operators (boolean-mask indexing, ``nonzero``), which a
+CUDA profile shows.
+
+Usage::
+
+    with HostTransfers() as ht:
+        mapper.train_once()
+    ht.total, ht.by_line()   # {"h3edge/mapping/trainer.py:128 cpu": 1, ...}
+    ht.by_function()         # {"h3edge/mapping/trainer.py:_free_points": 3, ...}
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+from pathlib import Path
+
+import torch
+
+_PACKAGE = str(Path(__file__).resolve().parents[1])  # .../h3edge
+_THIS = str(Path(__file__).resolve())
+_METHODS = ("cpu", "numpy", "item", "tolist", "__float__", "__int__", "__bool__", "__array__")
+
+
+class HostTransfers:
+    """A context manager that counts host transfers of torch tensors made from h3edge code while it
+    is open (one thread or many). Not re-entrant; patches ``torch.Tensor`` methods for its span."""
+
+    def __init__(self):
+        self.events: collections.Counter[tuple[str, str]] = collections.Counter()  # ("path:line", kind) -> count
+        self.functions: collections.Counter[str] = collections.Counter()  # "path:function" -> count
+        self._saved: dict[str, object] = {}
+        self._last: dict[int, tuple[str, str]] = {}  # thread id -> the last (site, kind): cpu then numpy
+
+    @property
+    def total(self) -> int:
+        """Host transfers counted so far."""
+        return sum(self.events.values())
+
+    def by_line(self) -> dict[str, int]:
+        """``"path:line kind"`` (path relative to the repository) -> count, largest first."""
+        return {f"{site} {kind}": n for (site, kind), n in self.events.most_common()}
+
+    def by_function(self) -> dict[str, int]:
+        """``"path:function"`` -> count, largest first (stable across edits that move lines)."""
+        return dict(self.functions.most_common())
+
+    def reset(self) -> None:
+        self.events.clear()
+        self.functions.clear()
+        self._last.clear()
+
+    @staticmethod
+    def _site() -> tuple[str, str] | None:
+        frame = sys._getframe(3)  # _site <- _record <- the patched method <- its caller
+        path = frame.f_code.co_filename
+        if not path.startswith(_PACKAGE) or path == _THIS:
+            return None
+        rel = Path(path).relative_to(Path(_PACKAGE).parent)
+        return f"{rel}:{frame.f_lineno}", f"{rel}:{frame.f_code.co_name}"
+
+    def _record(self, kind: str) -> None:
+        import threading
+
+        where = self._site()
+        if where is None:  # torch's or a test's own call
+            return
+        site, function = where
+        tid = threading.get_ident()
+        if kind == "numpy" and self._last.get(tid) == (site, "cpu"):
+            self._last[tid] = (site, kind)
+            return  # x.cpu().numpy(): one transfer
+        self._last[tid] = (site, kind)
+        self.events[(site, kind.strip("_"))] += 1
+        self.functions[function] += 1
+
+    def __enter__(self) -> HostTransfers:
+        for name in _METHODS:
+            original = getattr(torch.Tensor, name)
+            self._saved[name] = original
+
+            def wrapper(t, *args, _name=name, _original=original, **kwargs):
+                self._record(_name)
+                return _original(t, *args, **kwargs)
+
+            setattr(torch.Tensor, name, wrapper)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for name, original in self._saved.items():
+            setattr(torch.Tensor, name, original)
+        self._saved.clear()
