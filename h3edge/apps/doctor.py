@@ -7,7 +7,7 @@ queries fall back); zenoh; Open3D (only the ``eval`` extra needs it); the profil
 against its budget; a map of a few synthetic frames on the profile's device (integrate, train,
 render: the whole path in seconds); and, where CUDA is present, the hash encodings on CPU and CUDA
 against each other (forward values, gradients, one sparse Adam step). Exit status 1 when a check
-fails.
+fails; 2, with one line, when the profile maps on CUDA and the machine has none.
 """
 
 from __future__ import annotations
@@ -169,8 +169,25 @@ def run_checks(profile_name: str) -> list[Check]:
     return checks
 
 
+NO_CUDA = 2  # exit status: the profile maps on CUDA and this machine has none
+
+
 def doctor(profile_name: str, json_path: str | None = None) -> int:
-    """Print the checks, one line each (and write them as JSON to ``json_path``); 1 when one failed."""
+    """Print the checks, one line each (and write them as JSON to ``json_path``); 1 when one failed;
+    2 (:data:`NO_CUDA`, one line on standard error, nothing checked) when the profile maps on CUDA
+    and this machine has no CUDA device (an Orin profile on a laptop: run it on the Orin)."""
+    import torch
+
+    from h3edge.config import load_profile
+
+    try:
+        wanted = load_profile(profile_name).mapping.mapper.device
+    except ValueError:
+        wanted = ""  # the profile check below names what is wrong
+    if wanted.startswith("cuda") and not torch.cuda.is_available():
+        print(f"h3edge doctor: profile {profile_name} maps on {wanted} and this machine has no CUDA device "
+              f"(torch {torch.__version__}): run it on the device the profile is for", file=sys.stderr)
+        return NO_CUDA
     checks = run_checks(profile_name)
     width = max(len(c.name) for c in checks)
     for c in checks:
