@@ -45,7 +45,7 @@ import numpy as np
 
 from h3edge.api import DecoderRuntime, DistanceSample, DistanceSlice, InferenceConfig, Mapper, MapSettings, MapSnapshot
 from h3edge.api import warm_up as warm_up_kernels
-from h3edge.errors import QueryError
+from h3edge.errors import InputError, QueryError
 from h3edge.io.protocol import (
     FrameMessage,
     FrameTooLarge,
@@ -330,9 +330,14 @@ class MapService:
                 self._serve_requests()
                 time.sleep(0.005)
         self.mapper.timings.add("association", time.perf_counter() - t_assoc)
-        result = self.mapper.add_frame(msg.color, msg.depth, pose, msg.intrinsics, msg.timestamp,
-                                       train=not self.background_training, frame_id=msg.frame_id,
-                                       decode_seconds=t_assoc - t0)
+        try:
+            result = self.mapper.add_frame(msg.color, msg.depth, pose, msg.intrinsics, msg.timestamp,
+                                           train=not self.background_training, frame_id=msg.frame_id,
+                                           decode_seconds=t_assoc - t0)
+        except InputError as e:  # a frame the library refuses as input (shape, dtype, intrinsics): counted
+            self._drops["malformed"] += 1
+            self._error("malformed", f"frame {msg.frame_id}: {e}")
+            return
         if result.mapped:
             with self._req_lock:
                 self._mapped_poses.append((msg.timestamp_ns, np.asarray(pose, np.float64)))
