@@ -24,8 +24,6 @@ from h3edge.mapping.engine import MapEngine, MapSettings
 from h3edge.profiling.host_transfers import HostTransfers
 from h3edge.sim.make import PRESETS, make_scene
 
-log = logging.getLogger(__name__)
-
 
 def lean_torch_settings(profile: str = "orin-agx") -> MapSettings:
     """``profile``'s mapping on the CPU with the torch backend, sized for the tiny simulated scene

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -52,8 +54,6 @@ SHIPPED_FIXES = {
 def with_shipped_fixes(settings, **tables):
     """``settings`` (a MapSettings) with :data:`SHIPPED_FIXES` on; ``tables``: section name -> dict
     of further fields to set there (e.g. ``mapper={"train_between_frames": False}``)."""
-    import dataclasses
-
     out = settings
     for table in set(SHIPPED_FIXES) | set(tables):
         values = {**SHIPPED_FIXES.get(table, {}), **tables.get(table, {})}

@@ -14,13 +14,14 @@ Usage::
     with HostTransfers() as ht:
         mapper.train_once()
     ht.total, ht.by_line()   # {"h3edge/mapping/trainer.py:128 cpu": 1, ...}
-    ht.by_function()         # {"h3edge/mapping/trainer.py:_free_points": 3, ...}
+    ht.by_function()         # {"h3edge/mapping/cell_votes.py:sample_free": 3, ...}
 """
 
 from __future__ import annotations
 
 import collections
 import sys
+import threading
 from pathlib import Path
 
 import torch
@@ -53,11 +54,6 @@ class HostTransfers:
         """``"path:function"`` -> count, largest first (stable across edits that move lines)."""
         return dict(self.functions.most_common())
 
-    def reset(self) -> None:
-        self.events.clear()
-        self.functions.clear()
-        self._last.clear()
-
     @staticmethod
     def _site() -> tuple[str, str] | None:
         frame = sys._getframe(3)  # _site <- _record <- the patched method <- its caller
@@ -68,8 +64,6 @@ class HostTransfers:
         return f"{rel}:{frame.f_lineno}", f"{rel}:{frame.f_code.co_name}"
 
     def _record(self, kind: str) -> None:
-        import threading
-
         where = self._site()
         if where is None:  # torch's or a test's own call
             return
