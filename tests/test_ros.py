@@ -162,6 +162,29 @@ def test_colour_and_depth_are_paired_by_stamp_and_poses_composed_with_the_extrin
     assert ing.status()["received"]["pose"] == 3
 
 
+def test_frames_before_the_first_camera_info_wait_for_it_in_order():
+    from h3edge.io.protocol import decode_frame
+
+    ing, sink = _ingest(pair_buffer=3)
+    intr = Intrinsics(8, 6, 6.0, 6.0, 4.0, 3.0)
+    rgb = np.full((6, 8, 3), 120, np.uint8)
+    depth = np.full((6, 8), 1.5, np.float32)
+    on = {r: ing.handler(r) for r in ("color", "depth", "camera_info")}
+    t0 = 1_000_000_000
+    for i in range(5):  # camera info comes on its own topic, here after five pairs
+        on["color"](ros.serialize(ros.color_message(rgb, t0 + i * 33_000_000, "cam")))
+        on["depth"](ros.serialize(ros.depth_message(depth, t0 + i * 33_000_000, "cam")))
+    assert sink.frames == [] and ing.drops["ros_no_camera_info"] == 2  # the wait holds pair_buffer pairs
+    on["camera_info"](ros.serialize(ros.camera_info_message(Intrinsics(4, 3, 3.0, 3.0, 2.0, 1.5), 0, "cam")))
+    assert sink.frames == []  # another size does not release them
+    on["camera_info"](ros.serialize(ros.camera_info_message(intr, 0, "cam")))
+    on["color"](ros.serialize(ros.color_message(rgb, t0 + 5 * 33_000_000, "cam")))
+    on["depth"](ros.serialize(ros.depth_message(depth, t0 + 5 * 33_000_000, "cam")))
+    stamps = [decode_frame(f).timestamp_ns for f in sink.frames]
+    assert stamps == [t0 + i * 33_000_000 for i in (2, 3, 4, 5)]
+    assert ing.status()["frames"] == 4 and ing.drops["ros_no_camera_info"] == 2
+
+
 def test_tf_messages_take_only_the_base_transform():
     ing, sink = _ingest(pose_type="tf", world_frame="odom")
     base = _pose(5)

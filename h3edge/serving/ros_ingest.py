@@ -5,6 +5,9 @@ into camera poses, both handed to the service's :class:`~h3edge.serving.ingest.I
   ``pair_tolerance_s`` among the last ``pair_buffer`` of it; paired images become one raw frame
   message (no re-encoding) stamped with the colour image's stamp, carrying the latest camera info
   of that size. Unpaired images age out of the buffer (counted ``unpaired``).
+- Camera info comes on its own topic, in no fixed order with the images: a pair whose size has no
+  camera info yet waits (at most ``pair_buffer`` pairs) and goes on, in stamp order, when camera info
+  of its size arrives; a pair pushed out of that wait is counted ``ros_no_camera_info``.
 - Poses (``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` or ``tf2_msgs/TFMessage``) place the
   robot's ``base_frame``; the camera pose is ``T_world_base @ T_base_optical`` with the configured
   extrinsic ``base_to_camera``. There is no default extrinsic: without one (or ``identity``, said
@@ -59,9 +62,11 @@ class RosIngest:
         self.extrinsic = extrinsic_matrix(cfg.base_to_camera)
         self.submit_frame, self.add_pose, self.on_error = submit_frame, add_pose, on_error
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()  # frames leave in the order they were paired
         self._colors: collections.deque[_Image] = collections.deque()
         self._depths: collections.deque[_Image] = collections.deque()
         self._infos: dict[tuple[int, int], Intrinsics] = {}
+        self._waiting: collections.deque[tuple[int, _Image, _Image]] = collections.deque()  # pairs without info
         self.received = collections.Counter()  # by role
         self.drops = collections.Counter()  # by reason
         self.frames = 0  # paired frames handed on
@@ -114,12 +119,23 @@ class RosIngest:
 
     def on_camera_info(self, data: bytes) -> None:
         intr = ros.camera_intrinsics(ros.deserialize(data, ros.CAMERA_INFO))
-        with self._lock:
-            self._infos[(intr.width, intr.height)] = intr
-            while len(self._infos) > 4:
-                del self._infos[next(iter(self._infos))]
+        size = (intr.width, intr.height)
+        with self._send_lock:
+            with self._lock:
+                self._infos[size] = intr
+                while len(self._infos) > 4:
+                    del self._infos[next(iter(self._infos))]
+                ready = [p for p in self._waiting if p[1].array.shape[1::-1] == size]
+                for p in ready:
+                    self._waiting.remove(p)
+            for frame_id, color, depth in ready:
+                self._send(frame_id, color, depth, intr)
 
     def _pair(self, img: _Image, mine: collections.deque, others: collections.deque, is_color: bool) -> None:
+        with self._send_lock:
+            self._pair_and_send(img, mine, others, is_color)
+
+    def _pair_and_send(self, img: _Image, mine: collections.deque, others: collections.deque, is_color: bool) -> None:
         tol = int(self.cfg.pair_tolerance_s * 1e9)
         with self._lock:
             best = min(others, key=lambda o: abs(o.stamp - img.stamp), default=None)
@@ -145,8 +161,18 @@ class RosIngest:
                                             " differ: publish depth registered to the colour camera")
             return
         if intr is None:
-            self._drop("ros_no_camera_info", f"no camera info for {w}x{h} images yet on {self.cfg.camera_info_topic}")
+            with self._lock:
+                self._waiting.append((frame_id, color, depth))
+                pushed_out = len(self._waiting) > self.cfg.pair_buffer
+                if pushed_out:
+                    self._waiting.popleft()
+            if pushed_out:
+                self._drop("ros_no_camera_info", f"no camera info for {w}x{h} images on {self.cfg.camera_info_topic} "
+                                                 f"while {self.cfg.pair_buffer} pairs waited for it")
             return
+        self._send(frame_id, color, depth, intr)
+
+    def _send(self, frame_id: int, color: _Image, depth: _Image, intr: Intrinsics) -> None:
         msg = FrameMessage(color.stamp, frame_id, color.array, depth.array, intr, None, color.frame_id)
         with self._lock:
             self.frames += 1
