@@ -40,8 +40,9 @@ def count_transfers(settings: MapSettings, frames: list) -> dict:
     per-frame and per-step totals (after the first two frames: the map's first keyframe and field
     set-up are not the steady state), and the steady steps' counts by function and by line."""
     m = MapEngine(settings)
-    per_frame, per_step = [], []
+    per_frame, per_step, step_syncs = [], [], []
     functions: dict[str, list[int]] = {}
+    sync_functions: dict[str, list[int]] = {}
     lines: dict[str, int] = {}
     for i, f in enumerate(frames):
         with HostTransfers() as integ:
@@ -52,14 +53,20 @@ def count_transfers(settings: MapSettings, frames: list) -> dict:
             continue
         per_frame.append(integ.total)
         per_step.append(step.total)
+        step_syncs.append(step.syncs)
         for k, v in step.by_function().items():
             functions.setdefault(k, []).append(v)
+        for k, v in step.syncs_by_function().items():
+            sync_functions.setdefault(k, []).append(v)
         for k, v in step.by_line().items():
             lines[k] = max(lines.get(k, 0), v)
     if not per_step:
         raise RuntimeError("no steady training step ran: more frames needed")
     return {"frames": len(per_frame), "integration": {"max": max(per_frame), "median": statistics.median(per_frame)},
             "step": {"max": max(per_step), "median": statistics.median(per_step)},
+            "step_syncs": {"max": max(step_syncs), "median": statistics.median(step_syncs)},
+            "step_syncs_by_function": {k: max(v) for k, v in
+                                       sorted(sync_functions.items(), key=lambda kv: -max(kv[1]))},
             "step_by_function": {k: max(v) for k, v in sorted(functions.items(), key=lambda kv: -max(kv[1]))},
             "step_by_line": dict(sorted(lines.items(), key=lambda kv: -kv[1]))}
 
@@ -71,6 +78,10 @@ def _markdown(result: dict, profile: str) -> str:
     out += [f"| `{k}` | {v} |" for k, v in result["step_by_function"].items()]
     out += ["", "| step: line | transfers |", "|---|---|"]
     out += [f"| `{k}` | {v} |" for k, v in result["step_by_line"].items()]
+    out += ["", f"Data-dependent shapes in a step (on CUDA the host waits for the device to learn a size; no copy "
+                f"of the data): {result['step_syncs']['max']} (median {result['step_syncs']['median']}).", "",
+            "| step: function | syncs |", "|---|---|"]
+    out += [f"| `{k}` | {v} |" for k, v in result["step_syncs_by_function"].items()]
     return "\n".join(out) + "\n"
 
 

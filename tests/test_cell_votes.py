@@ -122,7 +122,8 @@ def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_
     frac = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n  # every cell's centre
     vox = np.repeat(np.arange(len(vm)), len(cells))
     with torch.no_grad():
-        prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3), (vox, np.tile(frac, (len(vm), 1))))
+        prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3),
+                                 (torch.from_numpy(vox), torch.from_numpy(np.tile(frac, (len(vm), 1)))))
     want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
     assert 0 < len(want) < cv.votes.size
     priors = vm.priors.numpy()
@@ -132,6 +133,57 @@ def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_
     counts = np.bincount(np.searchsorted(want, drawn), minlength=len(want))
     assert counts.min() > 5 and counts.max() < 70  # uniform: Poisson(30) stays inside by far
     assert len(k.draw_free_cells(cv.votes, vm.voxel_vertices, priors, cv.n, 2, np.float32(-5.0), 10, 1000, 1)) == 0
+
+
+def test_the_device_draw_keeps_the_rule_of_the_host_draw():
+    """``sample_free_tensor`` (the torch backend's draw, fixed shapes on the device) draws from the
+    same cells as the host draw (enough votes, centre prior near a surface), all of them and no
+    other, each point at the world position of its voxel and fraction; the points it cannot fill
+    are marked -1."""
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.02, min_votes=2), voxel_size=0.1, behind=0.05)
+    cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    rng = np.random.default_rng(0)
+    cv.votes[:] = rng.integers(-3, 4, cv.votes.shape)
+    vm.priors = torch.from_numpy(rng.uniform(-1.5, 2.5, len(vm.priors)).astype(np.float32))
+    cells = np.arange(cv.n ** 3)
+    centres = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n
+    with torch.no_grad():
+        prior, _ = vm.coarse_sdf(torch.zeros(len(vm) * len(cells), 3),
+                                 (torch.from_numpy(np.repeat(np.arange(len(vm)), len(cells))),
+                                  torch.from_numpy(np.tile(centres, (len(vm), 1)).astype(np.float32))))
+    want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
+    n = 10 * len(want)
+    pts, vox, frac = cv.sample_free_tensor(n, vm, torch.Generator().manual_seed(0), near_prior=0.5)
+    assert pts.shape == (n, 3) and vox.shape == (n,) and frac.shape == (n, 3)
+    ok = vox >= 0
+    assert ok.float().mean() > 0.9  # DEVICE_TRIES random cells a point find enough at this acceptance
+    c = np.floor(frac[ok].numpy() * cv.n).astype(np.int64)
+    drawn = vox[ok].numpy() * cv.n ** 3 + (c[:, 0] * cv.n + c[:, 1]) * cv.n + c[:, 2]
+    assert set(drawn.tolist()) <= set(want.tolist()) and len(np.unique(drawn)) > 0.99 * len(want)
+    found_vox, found_frac = vm.locate(pts[ok].double().numpy())
+    assert np.array_equal(found_vox, vox[ok].numpy()) and np.allclose(found_frac, frac[ok].numpy(), atol=1e-5)
+    few = cv.sample_free_tensor(10, vm, torch.Generator().manual_seed(0), near_prior=-5.0)[1]
+    assert (few == -1).all()  # no cell passes: every point marked
+    again = cv.sample_free_tensor(n, vm, torch.Generator().manual_seed(0), near_prior=0.5)
+    assert torch.equal(again[0], pts)  # reproducible from the generator
+
+
+def test_seen_free_on_the_device_and_the_mirror_follow_every_mark():
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01), voxel_size=0.1, behind=0.05)
+    rng = np.random.default_rng(3)
+    vox = torch.from_numpy(rng.integers(-1, len(vm), 5000))
+    frac = torch.from_numpy(rng.uniform(0, 1, (5000, 3)).astype(np.float32))
+    mirror = cv._mirrored(torch.device("cpu"))  # what a CUDA device gets: a copy kept up to date
+    assert len(mirror) == 0 and not cv.seen_free_tensor(mirror, vox, frac).any()
+    for depth in (2.0, 2.0, 1.5):
+        cv.mark(vm, np.full((INTR.height, INTR.width), depth, np.float32), INTR, FRONT)
+        mirror = cv._mirrored(torch.device("cpu"))
+        assert np.array_equal(mirror.numpy(), cv.votes) and mirror.data_ptr() != cv.votes.ctypes.data
+        want = cv.seen_free(vox.numpy(), frac.numpy().astype(np.float64))
+        assert want.any() and np.array_equal(cv.seen_free_tensor(mirror, vox, frac).numpy(), want)
+        assert np.array_equal(cv.seen_free_tensor(cv.on_device(torch.device("cpu")), vox, frac).numpy(), want)
 
 
 def test_state_round_trip_and_a_state_at_another_cell_size_starts_empty():
@@ -186,12 +238,14 @@ def test_seen_free_points_that_read_outside_are_left_out_with_the_same_loss_and_
         order = torch.argsort(rows)
         return ([p.grad.clone() for p in fld.sdf_mlp.parameters()] + [vm.priors.grad.clone()], rows[order], g[order])
 
-    sdf, inside = fld.sdf(torch.from_numpy(pts.astype(np.float32)), vm, (vox, frac))
+    pts, vox, frac = (torch.from_numpy(pts.astype(np.float32)), torch.from_numpy(vox),
+                      torch.from_numpy(frac.astype(np.float32)))
+    sdf, inside = fld.sdf(pts, vm, (vox, frac))
     full = seen_free_loss(sdf, inside, tr)
     g_full = grads(full)
-    (kp, kv, kf), count = reading_inside(fld, vm, (pts, vox, frac), torch.device("cpu"))
+    (kp, kv, kf), count = reading_inside(fld, vm, (pts, vox, frac))
     assert count == 2000 and 0 < len(kp) < 0.9 * count
-    sdf_k, inside_k = fld.sdf(torch.from_numpy(kp.astype(np.float32)), vm, (kv, kf))
+    sdf_k, inside_k = fld.sdf(kp, vm, (kv, kf))
     assert (sdf_k < 0).all()
     kept = seen_free_loss(sdf_k, inside_k, tr, count)
     g_kept = grads(kept)

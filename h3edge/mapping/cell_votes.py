@@ -30,15 +30,18 @@ Usage::
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics, invert_pose
+from h3edge.mapping.trilinear import corner_weights
 from h3edge.mapping.voxels import VoxelMap, unpack
 
 MAX_CELLS_PER_SIDE = 32  # 32 KB of votes a voxel
+DEVICE_TRIES = 8  # random cells drawn per wanted point by the device draw (sample_free_tensor)
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,21 @@ class CellVotes:
         self.max_voxels = max_voxels  # the map's voxel cap: storage never grows past it
         self._store = np.zeros((0, self.n ** 3), np.int8)  # rows by voxel id, capacity >= rows
         self.rows = 0
+        # the votes on a training device other than the host (:meth:`on_device`): the mirror and the
+        # rows marked since it was last brought up to date
+        self._mirror: torch.Tensor | None = None
+        self._dirty: list[np.ndarray] = []
+        self._dirty_lock = threading.Lock()
+
+    def __getstate__(self) -> dict:  # copies take the votes, not the device mirror or its lock
+        state = dict(self.__dict__)
+        state.update(_mirror=None, _dirty=[])
+        state.pop("_dirty_lock")
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._dirty_lock = threading.Lock()
 
     @property
     def votes(self) -> np.ndarray:
@@ -96,6 +114,8 @@ class CellVotes:
     @votes.setter
     def votes(self, value: np.ndarray) -> None:
         self._store, self.rows = np.asarray(value, np.int8), len(value)
+        with self._dirty_lock:
+            self._mirror, self._dirty = None, []
 
     @property
     def enabled(self) -> bool:
@@ -134,7 +154,43 @@ class CellVotes:
             k.vote_cells(np.ascontiguousarray(corners[ids]), ids, self._store, np.ascontiguousarray(depth, np.float32),
                          rot, trans, intr.fx, intr.fy, intr.cx, intr.cy, self.cfg.cell, self.n,
                          self.cfg.margin, self.behind)
+            with self._dirty_lock:  # after the write: a mirror update that copied a half-written row copies it again
+                if self._mirror is not None:
+                    self._dirty.append(ids)
         return len(ids)
+
+    def on_device(self, device: torch.device) -> torch.Tensor:
+        """The votes (rows, cells) int8 on ``device``: on the host a view of the storage; elsewhere
+        a mirror brought up to date with the rows :meth:`mark` wrote since the last call (one
+        host-to-device copy of those rows; the whole storage when the mirror is first made or
+        outgrown). Never a device-to-host copy."""
+        device = torch.device(device)
+        if device.type == "cpu":
+            return torch.from_numpy(self._store[:self.rows])
+        return self._mirrored(device)
+
+    def _mirrored(self, device: torch.device) -> torch.Tensor:
+        """The votes in a mirror on ``device``, brought up to date (:meth:`on_device`)."""
+        with self._dirty_lock:
+            mirror, dirty, self._dirty = self._mirror, self._dirty, []
+            rows = self.rows
+            if mirror is None or mirror.device != device or len(mirror) < rows:
+                self._mirror = mirror = torch.from_numpy(self._store).to(device, copy=True)
+                dirty = []
+        if dirty:
+            ids = np.unique(np.concatenate(dirty))
+            mirror[torch.from_numpy(ids).to(device)] = torch.from_numpy(self._store[ids]).to(device)
+        return mirror[:rows]
+
+    def seen_free_tensor(self, votes: torch.Tensor, vox: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
+        """:meth:`seen_free` in torch on the points' device: ``votes`` from :meth:`on_device`, ``vox``
+        (N,) int64 voxel ids (-1: none), ``frac`` (N, 3) positions in the voxel; (N,) bool."""
+        ok = (vox >= 0) & (vox < len(votes))
+        if not self.enabled or len(votes) == 0:
+            return torch.zeros_like(ok)
+        c = (frac * self.n).floor().long().clamp(0, self.n - 1)
+        flat = (c[:, 0] * self.n + c[:, 1]) * self.n + c[:, 2]
+        return ok & (votes[torch.where(ok, vox, 0), flat] >= self.cfg.min_votes)
 
     def seen_free(self, vox: np.ndarray, frac: np.ndarray) -> np.ndarray:
         """(N,) bool: the cell at each located point (``vox`` voxel id, -1 = none; ``frac`` its
@@ -159,6 +215,37 @@ class CellVotes:
         frac = pts[ok] / self.voxel_size - unpack(voxels.voxel_keys[vox[ok]])
         out[ok] = self.seen_free(vox[ok], frac)
         return out
+
+    def sample_free_tensor(self, n: int, voxels: VoxelMap, generator: torch.Generator,
+                           near_prior: float = 1.0, tries: int = DEVICE_TRIES
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`sample_free` on the generator's device in fixed-shape tensor operations (no host
+        transfer, no sync): ``tries * n`` random (voxel, cell) pairs, and of those that pass (votes
+        and prior as there) ``n`` at random; (n, 3) world points, (n,) voxel ids and (n, 3) positions
+        in the voxel, the voxel id -1 where fewer than ``n`` passed (callers mask those)."""
+        dev = generator.device
+        votes = self.on_device(dev)
+        rows = min(len(votes), len(voxels))
+        if not self.enabled or n <= 0 or rows == 0:
+            return (torch.zeros((0, 3), device=dev), torch.zeros(0, dtype=torch.long, device=dev),
+                    torch.zeros((0, 3), device=dev))
+        m, cells = tries * n, self.n ** 3
+        row = torch.randint(0, rows, (m,), generator=generator, device=dev)
+        cell = torch.randint(0, cells, (m,), generator=generator, device=dev)
+        ijk = torch.stack([cell // (self.n * self.n), (cell // self.n) % self.n, cell % self.n], 1)
+        centre = (ijk.to(torch.float32) + 0.5) / self.n
+        corners = voxels.device_index(dev).voxel_vertices
+        prior = (voxels.priors.detach()[corners[row]] * corner_weights(centre)).sum(1)
+        passed = (votes[row, cell] >= self.cfg.min_votes) & (prior < near_prior)
+        key = torch.rand(m, generator=generator, device=dev) + (~passed).to(torch.float32)  # passed first
+        pick = torch.topk(key, min(n, m), largest=False).indices
+        ok = passed[pick]
+        jitter = torch.rand((len(pick), 3), generator=generator, device=dev)
+        frac = (ijk[pick].to(torch.float32) + jitter) / self.n
+        vox = torch.where(ok, row[pick], -1)
+        origin = voxels.device_index(dev).origins[row[pick]]
+        pts = (origin + frac.to(torch.float64) * self.voxel_size).to(torch.float32)
+        return pts, vox, frac
 
     def sample_free(self, n: int, voxels: VoxelMap, generator: torch.Generator | None = None,
                     near_prior: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

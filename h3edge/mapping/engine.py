@@ -256,6 +256,8 @@ class MapEngine:
         self.field = Field(self.settings.field, self.bound, self.settings.voxels.voxel_size, self.device,
                            self.settings.texture)
         self.field.color_base = self.color_base
+        # training locates its samples where the field runs: on the device with the torch backend
+        self.voxels.device_lookup = self.field.geo_grid.backend == "torch"
         params = list(self.field.sdf_mlp.parameters()) + list(self.field.color_mlp.parameters())
         self.optimizer = torch.optim.Adam(params, lr=self.settings.train.lr)
         self.trainer = Trainer(self.train_cfg, self.settings.render.near, self.field, self.voxels, self.optimizer,

@@ -47,14 +47,17 @@ class LossWeights:
 
 
 def depth_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Mean |pred - gt| (R,) over the rays with measured depth (gt > 0); 0 when none (a masked mean,
+    no host transfer)."""
     valid = gt > 0
-    if not valid.any():
-        return pred.sum() * 0
-    return (pred[valid] - gt[valid]).abs().mean()
+    return torch.where(valid, (pred - gt).abs(), 0.0).sum() / valid.sum().clamp(min=1)
 
 
-def rgb_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    return (pred - gt).abs().mean()
+def rgb_l1(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |pred - gt| over colours (R, 3), or over the rows in ``mask`` (R,) bool (0 when none)."""
+    if mask is None:
+        return (pred - gt).abs().mean()
+    return torch.where(mask[:, None], (pred - gt).abs(), 0.0).sum() / (3 * mask.sum()).clamp(min=1)
 
 
 def _gaussian_window(k: int, sigma: float = 1.5, device=None, dtype=None) -> torch.Tensor:
@@ -128,13 +131,10 @@ def free_space_and_sdf(sdf: torch.Tensor, sample_depth: torch.Tensor, gt_depth: 
         change = (sgn[:, 1:] != sgn[:, :-1]) & m[:, 1:] & m[:, :-1]
         n_changes = torch.cat([torch.zeros_like(change[:, :1], dtype=torch.long), torch.cumsum(change.long(), 1)], 1)
         tr = tr & ~((n_changes >= 2) & (target < 0))
-    z = sdf.sum() * 0
 
-    def per_ray_mean(err, sel):
+    def per_ray_mean(err, sel):  # masked means: no host transfer
         cnt = sel.sum(1)
-        rays = cnt > 0
-        if not rays.any():
-            return z
-        return ((err * sel).sum(1)[rays] / cnt[rays]).mean()
+        per_ray = torch.where(sel, err, 0.0).sum(1) / cnt.clamp(min=1)
+        return per_ray.sum() / (cnt > 0).sum().clamp(min=1)
 
     return per_ray_mean((sdf - 1.0) ** 2, fs), per_ray_mean((truncation * (sdf - target)) ** 2, tr)

@@ -101,8 +101,9 @@ def sample_depths(depth: torch.Tensor, cfg: TrainConfig, truncation: float, near
     :attr:`RenderConfig.near`); returns them and where the band starts."""
     r = len(depth)
     half = (cfg.band_samples - 1) / 2
-    offsets = cfg.step * (torch.arange(cfg.band_samples, dtype=depth.dtype, device=depth.device) - half)
-    band = depth[:, None] + offsets[offsets <= cfg.band_behind + 1e-6]
+    kept = sum(cfg.step * (k - half) <= cfg.band_behind + 1e-6 for k in range(cfg.band_samples))  # on the host
+    offsets = cfg.step * (torch.arange(kept, dtype=depth.dtype, device=depth.device) - half)
+    band = depth[:, None] + offsets
     far = (depth - truncation).clamp(min=near)
     u = (torch.arange(cfg.free_samples, device=depth.device, dtype=depth.dtype)
          + torch.rand(r, cfg.free_samples, generator=generator, device=depth.device, dtype=depth.dtype))
@@ -116,8 +117,6 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     inside allocated voxels where the ray has enough of them: picked at random among
     ``cfg.free_candidates`` stratified candidates that fall in a voxel (rays with fewer keep some
     candidates outside, which the voxel mask drops)."""
-    from h3edge.mapping.raymarch import PriorLookup
-
     depth = rays.depth
     r, m, k = len(depth), cfg.free_candidates, cfg.free_samples
     dev, dt = depth.device, depth.dtype
@@ -125,64 +124,65 @@ def free_depths_in_voxels(rays: RayBatch, voxels: VoxelMap, cfg: TrainConfig, tr
     u = torch.arange(m, device=dev, dtype=dt) + torch.rand(r, m, generator=generator, device=dev, dtype=dt)
     cand = near + (far - near)[:, None] * u / m  # (R, M)
     pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * cand[..., None]
-    _, vox = PriorLookup(voxels)(pts.reshape(-1, 3).detach().cpu().numpy())
-    inside = torch.from_numpy(vox.reshape(r, m) >= 0).to(dev)
+    inside = voxels.locate_points(pts.reshape(-1, 3))[0].reshape(r, m) >= 0
     key = torch.rand(r, m, generator=generator, device=dev, dtype=dt) + (~inside).to(dt)  # inside first
     pick = torch.topk(key, k, dim=1, largest=False).indices
     return torch.sort(cand.gather(1, pick), dim=1).values
 
 
-def locate_surface_points(voxels: VoxelMap, rays: RayBatch) -> tuple[np.ndarray, np.ndarray] | None:
-    """:meth:`VoxelMap.locate` of ``rays.surface_points`` (once a step for the losses that read
-    them), or None when the batch has none."""
+def locate_surface_points(voxels: VoxelMap, rays: RayBatch) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:meth:`VoxelMap.locate_points` of ``rays.surface_points`` (once a step for the losses that
+    read them), or None when the batch has none."""
     if rays.surface_points is None or len(rays.surface_points) == 0:
         return None
-    return voxels.locate(rays.surface_points.detach().cpu().numpy())
+    return voxels.locate_points(rays.surface_points)
 
 
 def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch,
-                       located: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor | None:
+                       located: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor | None:
     """Mean L1 between the colour field at ``rays.surface_points`` and their pixels' colours, over
-    the points inside allocated voxels; None when there are none. ``located``: the points'
+    the points inside allocated voxels (0 when there are none: a masked mean, no host transfer);
+    None when the batch has no surface points. ``located``: the points'
     :func:`locate_surface_points`, when already known."""
     located = locate_surface_points(voxels, rays) if located is None else located
     if located is None:
         return None
     vox = located[0]
-    keep = torch.from_numpy(vox >= 0).to(rays.surface_points.device)
-    if not keep.any():
-        return None
-    idx = torch.from_numpy(vox).to(rays.surface_points.device)[keep]
-    pred = neural_field.color(rays.surface_points[keep], idx).to(torch.float32)
-    return rgb_l1(pred, rays.surface_color[keep])
+    keep = vox >= 0
+    pred = neural_field.color(rays.surface_points, vox).to(torch.float32)
+    err = torch.where(keep[:, None], (pred - rays.surface_color).abs(), 0.0)
+    return err.sum() / (3 * keep.sum()).clamp(min=1)
 
 
-def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float, count: int | None = None
-                   ) -> torch.Tensor | None:
+def seen_free_loss(sdf: torch.Tensor, inside: torch.Tensor, truncation: float,
+                   count: int | torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared negative part of the SDF ``sdf`` (truncation units; in metres, as L_sdf) at
     points drawn in cells the frames voted free (:meth:`CellVotes.sample_free`), over those in a
     voxel (``inside``): space most views saw through must not read inside. ``count``: how many
     points the mean is over, when the points that read outside (zero loss, zero gradient) were left
-    out of ``sdf`` (:func:`reading_inside`); default: those ``inside``. None when there are none."""
-    n = int(inside.sum()) if count is None else count
-    if n == 0 or not inside.any():
-        return None
-    return ((truncation * torch.relu(-sdf[inside])) ** 2).sum() / n
+    out of ``sdf`` (:func:`reading_inside`); default: those ``inside``. 0 when there are none (a
+    masked mean: no host transfer)."""
+    n = inside.sum() if count is None else torch.as_tensor(count, device=sdf.device)
+    hinge = torch.where(inside, (truncation * torch.relu(-sdf)) ** 2, 0.0)
+    return hinge.sum() / n.clamp(min=1)
 
 
-def reading_inside(neural_field: Field, voxels: VoxelMap, points: tuple[np.ndarray, np.ndarray, np.ndarray],
-                   device: torch.device) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], int]:
-    """The seen-free points (world, voxel ids, positions in the voxel) whose SDF reads inside (< 0),
-    from a forward pass without autograd, and how many of all of them lie in a voxel. The others
-    add nothing to :func:`seen_free_loss` (its hinge is flat at s >= 0), so leaving them out of the
-    training step's forward and backward passes gives the same gradient at a fraction of the cost."""
+def reading_inside(neural_field: Field, voxels: VoxelMap,
+                   points: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+                   ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+    """The seen-free points (world (P, 3), voxel ids (P,), positions in the voxel (P, 3), tensors on
+    the map's device) whose SDF reads inside (< 0), from a forward pass without autograd, and how
+    many of all of them lie in a voxel (a 0-d tensor). The others add nothing to
+    :func:`seen_free_loss` (its hinge is flat at s >= 0), so leaving them out of the training step's
+    forward and backward passes gives the same gradient at a fraction of the cost. The selection is
+    a boolean-mask index (on CUDA a sync for its size, no copy of the data)."""
     p, vox, frac = points
     if len(p) == 0:
-        return points, 0
+        return points, torch.zeros((), dtype=torch.long, device=p.device)
     with torch.no_grad():
-        sdf, inside = neural_field.sdf(torch.from_numpy(p.astype(np.float32)).to(device), voxels, (vox, frac))
-    keep = (inside & (sdf < 0)).cpu().numpy()
-    return (p[keep], vox[keep], frac[keep]), int(inside.sum())
+        sdf, inside = neural_field.sdf(p, voxels, (vox, frac))
+    keep = inside & (sdf < 0)
+    return (p[keep], vox[keep], frac[keep]), inside.sum()
 
 
 @dataclass
@@ -192,10 +192,10 @@ class Samples:
     t: torch.Tensor  # (R, S) z-depths along each ray, the free samples first
     band_start: int  # column where the band samples start
     pts: torch.Tensor  # (R, S, 3) world points
-    vox: np.ndarray  # (R * S,) voxel id of each point (-1: none)
-    frac: np.ndarray  # (R * S, 3) its position in the voxel
-    free_pts: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # seen-free points that read inside
-    free_count: int  # seen-free points drawn inside a voxel (the mean's denominator)
+    vox: torch.Tensor  # (R * S,) int64 voxel id of each point (-1: none)
+    frac: torch.Tensor  # (R * S, 3) its position in the voxel
+    free_pts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None  # seen-free points that read inside
+    free_count: torch.Tensor | int  # seen-free points drawn inside a voxel (the mean's denominator)
 
 
 @dataclass
@@ -229,29 +229,27 @@ class StepInputs:
     rendered: Rendered
     truncation: float
     cfg: TrainConfig
-    surface_located: tuple[np.ndarray, np.ndarray] | None
+    surface_located: tuple[torch.Tensor, torch.Tensor] | None
     generator: torch.Generator | None
     fs_sdf: tuple[torch.Tensor, torch.Tensor] | None = None  # (L_fs, L_sdf), once both terms asked
 
 
 def _rgb_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
-    """L1 on the rendered colour of the rays that hit (+ S3IM over them)."""
+    """L1 on the rendered colour of the rays that hit (a masked mean: 0 when none do) + S3IM over
+    them (their indices from ``nonzero``: on CUDA a sync for the count, no copy of the data)."""
     hit, w = x.rendered.hit, x.cfg.weights
-    if not hit.any():
-        return x.field_eval.sdf.sum() * 0
-    loss = rgb_l1(x.rendered.color[hit], x.rays.color[hit])
-    if w.s3im and hit.sum() >= w.s3im_patch_width:
-        loss = loss + s3im(x.rendered.color[hit], x.rays.color[hit], w.s3im_kernel, w.s3im_stride, w.s3im_repeats,
-                           w.s3im_patch_width, x.generator)
+    loss = rgb_l1(x.rendered.color, x.rays.color, hit)
+    if w.s3im:
+        idx = torch.nonzero(hit).squeeze(1)
+        if len(idx) >= w.s3im_patch_width:
+            loss = loss + s3im(x.rendered.color[idx], x.rays.color[idx], w.s3im_kernel, w.s3im_stride,
+                               w.s3im_repeats, w.s3im_patch_width, x.generator)
     return loss
 
 
 def _depth_term(neural_field: Field, voxels: VoxelMap, x: StepInputs) -> torch.Tensor:
-    """L1 on the rendered depth of the rays that hit."""
-    hit = x.rendered.hit
-    if not hit.any():
-        return x.field_eval.sdf.sum() * 0
-    return depth_l1(x.rendered.depth[hit], x.rays.depth[hit])
+    """L1 on the rendered depth of the rays that hit (a masked mean: 0 when none do)."""
+    return depth_l1(x.rendered.depth, torch.where(x.rendered.hit, x.rays.depth, 0.0))
 
 
 def _free_space_and_sdf(x: StepInputs) -> tuple[torch.Tensor, torch.Tensor]:
@@ -344,14 +342,17 @@ class Trainer:
         if cfg.free_in_voxels and cfg.free_samples > 0 and len(voxels):
             t = torch.cat([free_depths_in_voxels(rays, voxels, cfg, tr, self.near, self.generator), t[:, b0:]], 1)
         pts = rays.origins[:, None, :] + rays.dirs[:, None, :] * t[..., None]
-        vox, frac = voxels.locate(pts.reshape(-1, 3).detach().cpu().numpy())
+        vox, frac = voxels.locate_points(pts.reshape(-1, 3))
         free_pts, free_count = None, 0
         votes = self.votes
         if votes is not None and votes.cfg.points > 0 and cfg.weights.seen_free > 0:
-            free_pts, free_count = reading_inside(self.field, voxels,
-                                                  votes.sample_free(votes.cfg.points, voxels, self.generator),
-                                                  pts.device)
-            free_pts = free_pts if len(free_pts[0]) else None
+            if voxels.device_lookup:
+                drawn = votes.sample_free_tensor(votes.cfg.points, voxels, self.generator)
+            else:
+                p, v, f = votes.sample_free(votes.cfg.points, voxels, self.generator)
+                drawn = (torch.from_numpy(p.astype(np.float32)).to(pts.device), torch.from_numpy(v).to(pts.device),
+                         torch.from_numpy(f.astype(np.float32)).to(pts.device))
+            free_pts, free_count = reading_inside(self.field, voxels, drawn)
         return Samples(t, b0, pts, vox, frac, free_pts, free_count)
 
     def evaluate(self, rays: RayBatch, smp: Samples) -> FieldEval:
@@ -361,9 +362,8 @@ class Trainer:
         free_sdf = free_in = None
         if smp.free_pts is not None:
             p, pv, pf = smp.free_pts
-            located = (np.concatenate([smp.vox, pv]), np.concatenate([smp.frac, pf]))
-            both, both_in = self.field.sdf(torch.cat([flat, torch.from_numpy(p.astype(np.float32)).to(flat.device)]),
-                                           self.voxels, located)
+            located = (torch.cat([smp.vox, pv]), torch.cat([smp.frac, pf]))
+            both, both_in = self.field.sdf(torch.cat([flat, p]), self.voxels, located)
             sdf, inside, free_sdf, free_in = both[:r * s], both_in[:r * s], both[r * s:], both_in[r * s:]
         else:
             sdf, inside = self.field.sdf(flat, self.voxels, (smp.vox, smp.frac))
@@ -377,7 +377,7 @@ class Trainer:
         r, s = smp.t.shape
         b0, dev = smp.band_start, smp.pts.device
         band_pts = smp.pts[:, b0:].reshape(-1, 3)
-        band_vox = torch.from_numpy(smp.vox.reshape(r, s)[:, b0:].reshape(-1)).to(dev)
+        band_vox = smp.vox.reshape(r, s)[:, b0:].reshape(-1)
         need = color_samples(ev.sdf[:, b0:], self.field.cfg.beta, ev.inside[:, b0:], self.cfg.color_weight_floor)
         band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
         col = torch.zeros(len(band_pts), 3, device=dev).index_copy(
@@ -386,12 +386,9 @@ class Trainer:
         sdf_mask, carved = ev.inside, torch.zeros((), device=dev)
         if self.votes is not None:
             behind = ev.inside & (smp.t > rays.depth[:, None])
-            mask = behind.reshape(-1).cpu().numpy()
-            free = torch.from_numpy(self.votes.seen_free(smp.vox[mask], smp.frac[mask])).to(dev)
-            sdf_mask = ev.inside.clone()
-            sdf_mask[behind] = ~free
-            if len(free):
-                carved = free.float().mean()
+            free = self.votes.seen_free_tensor(self.votes.on_device(dev), smp.vox, smp.frac).reshape(r, s) & behind
+            sdf_mask = ev.inside & ~free
+            carved = free.sum() / behind.sum().clamp(min=1)
         return Rendered(out.color, out.depth, out.hit, sdf_mask, carved)
 
     def losses(self, x: StepInputs) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -411,8 +408,8 @@ class Trainer:
         touched hash-table rows, and the step's rays counted in the voxels their measured surface
         points fall in (:meth:`VoxelMap.count_trained`)."""
         measured = rays.depth > 0
-        ends = self.voxels.locate((rays.origins[measured] + rays.dirs[measured] * rays.depth[measured, None])
-                                  .detach().cpu().numpy())[0]
+        ends = self.voxels.locate_points(rays.origins + rays.dirs * rays.depth[:, None])[0]
+        ends = torch.where(measured, ends, -1)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         with commit():

@@ -84,22 +84,23 @@ def points_by_voxel(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, 
 
 
 class KeyIndex:
-    """Append-only key -> id map (ids in insertion order) over a sorted index."""
+    """Append-only key -> id map (ids in insertion order) over a sorted index. An insertion replaces
+    the arrays, never writes into them, so a reader on another thread sees the old index or the new."""
 
     def __init__(self) -> None:
         self.keys = np.zeros(0, np.int64)  # by id
-        self._sorted = np.zeros(0, np.int64)
-        self._ids = np.zeros(0, np.int64)  # id of each sorted key
+        self.index = (np.zeros(0, np.int64), np.zeros(0, np.int64))  # (sorted keys, the id of each)
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def find(self, keys: np.ndarray) -> np.ndarray:
         """Ids of ``keys``, -1 where absent."""
-        if len(self._sorted) == 0:
+        sorted_keys, ids = self.index
+        if len(sorted_keys) == 0:
             return np.full(len(keys), -1, np.int64)
-        i = lookup(self._sorted, keys)
-        return np.where(i >= 0, self._ids[np.maximum(i, 0)], -1)
+        i = lookup(sorted_keys, keys)
+        return np.where(i >= 0, ids[np.maximum(i, 0)], -1)
 
     def state_dict(self) -> np.ndarray:
         """The keys by id (the sorted index is rebuilt from them)."""
@@ -107,15 +108,15 @@ class KeyIndex:
 
     def load_state_dict(self, keys: np.ndarray) -> None:
         order = np.argsort(keys, kind="stable")
-        self.keys, self._sorted, self._ids = keys.astype(np.int64), keys[order].astype(np.int64), order.astype(np.int64)
+        self.keys, self.index = keys.astype(np.int64), (keys[order].astype(np.int64), order.astype(np.int64))
 
     def add(self, new_keys: np.ndarray) -> np.ndarray:
         """Append keys that are not present yet (unique, absent); returns their ids."""
         ids = np.arange(len(self.keys), len(self.keys) + len(new_keys))
         order = np.argsort(new_keys)
-        pos = np.searchsorted(self._sorted, new_keys[order])
-        self._sorted = np.insert(self._sorted, pos, new_keys[order])
-        self._ids = np.insert(self._ids, pos, ids[order])
+        sorted_keys, sorted_ids = self.index
+        pos = np.searchsorted(sorted_keys, new_keys[order])
+        self.index = (np.insert(sorted_keys, pos, new_keys[order]), np.insert(sorted_ids, pos, ids[order]))
         self.keys = np.concatenate([self.keys, new_keys])
         return ids
 
@@ -169,9 +170,14 @@ class VoxelMap:
         self.seen_behind = np.zeros(0, np.float32)
         # training rays whose measured surface point fell in each voxel (by voxel id): how far the
         # field has trained there, which decides where a render trusts the fused base over it
-        self.trained = np.zeros(0, np.float32)
+        self._trained = np.zeros(0, np.float32)
+        self._trained_pending: torch.Tensor | None = None  # counts a training step added on the device, not yet read
         self.refused = 0  # voxels not allocated because of the cap
         self._table: tuple[np.ndarray, VoxelTable] | None = None  # (the keys it indexes, the table)
+        # the lookup training uses: True on the torch backend (the index on the map's device,
+        # :meth:`locate_tensor`), False on the numba backend (:meth:`locate`, on the host); set by the engine
+        self.device_lookup = False
+        self._device_index: tuple[np.ndarray, np.ndarray, DeviceIndex] | None = None  # (keys, corners, index)
 
     def __len__(self) -> int:
         return len(self.voxels)
@@ -192,7 +198,8 @@ class VoxelMap:
         out.priors = self.priors.detach().clone()
         out.prior_set = self.prior_set.copy()
         out.seen_behind = self.seen_behind.copy()
-        out.trained = self.trained.copy()
+        out._trained, out._trained_pending = self.trained.copy(), None
+        out._device_index = None
         return out
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
@@ -261,12 +268,39 @@ class VoxelMap:
             self._init_priors(todo, vid, sdf, valid)
         return new
 
-    def count_trained(self, voxel_ids: np.ndarray) -> None:
-        """Add one trained ray to each voxel in ``voxel_ids`` (int64, -1: none; repeats count)."""
-        ids = voxel_ids[(voxel_ids >= 0) & (voxel_ids < len(self.trained))]
+    @property
+    def trained(self) -> np.ndarray:
+        """(V,) float32 on the host: training rays counted in each voxel (by id). Reading it folds in
+        the counts training steps added on the device since the last read (one device-to-host copy
+        a read, never one a step)."""
+        if self._trained_pending is not None:
+            pending, self._trained_pending = self._trained_pending, None
+            self._trained[:len(pending)] += pending.cpu().numpy()
+        return self._trained
+
+    @trained.setter
+    def trained(self, value: np.ndarray) -> None:
+        self._trained, self._trained_pending = value, None
+
+    def count_trained(self, voxel_ids: np.ndarray | torch.Tensor) -> None:
+        """Add one trained ray to each voxel in ``voxel_ids`` (int64, -1: none; repeats count): a
+        numpy array counts on the host; a tensor counts on its device in fixed-shape operations (no
+        host transfer) until :attr:`trained` is read."""
+        n = len(self._trained)
+        if isinstance(voxel_ids, torch.Tensor):
+            pending = self._trained_pending
+            if pending is None or pending.device != voxel_ids.device:
+                self.trained  # noqa: B018 - folds what another device counted
+                pending = torch.zeros(n, dtype=torch.float32, device=voxel_ids.device)
+            elif len(pending) < n:  # voxels added since: their counts start at 0
+                pending = torch.cat([pending, pending.new_zeros(n - len(pending))])
+            ok = (voxel_ids >= 0) & (voxel_ids < n)
+            self._trained_pending = pending.index_add_(0, torch.where(ok, voxel_ids, 0), ok.to(torch.float32))
+            return
+        ids = voxel_ids[(voxel_ids >= 0) & (voxel_ids < n)]
         if len(ids):
-            u, n = np.unique(ids, return_counts=True)
-            self.trained[u] += n
+            u, c = np.unique(ids, return_counts=True)
+            self._trained[u] += c
 
     def _record_seen(self, vid: np.ndarray, sdf: np.ndarray, valid: np.ndarray) -> None:
         """Lower ``seen_behind`` of vertices ``vid`` to how far behind this frame's measured surface
@@ -283,7 +317,8 @@ class VoxelMap:
         fresh_ids = self.vertices.add(fresh)
         ids[missing] = fresh_ids[np.searchsorted(fresh, corner_keys[missing])]
         self.voxel_vertices = np.concatenate([self.voxel_vertices, ids.reshape(-1, 8)])
-        self.trained = np.concatenate([self.trained, np.zeros(len(new_keys), np.float32)])
+        # pending device counts stay pending (they cover the first voxels; no host copy at integration)
+        self._trained = np.concatenate([self._trained, np.zeros(len(new_keys), np.float32)])
         grown = torch.full((len(fresh),), float(self.cfg.unset_prior), device=self.device)
         self.priors = torch.cat([self.priors.detach(), grown]).requires_grad_(True)  # a new leaf
         self.prior_set = np.concatenate([self.prior_set, np.zeros(len(fresh), bool)])
@@ -344,17 +379,70 @@ class VoxelMap:
         k.locate_cells(pts, tab.hkeys, tab.hids, float(self.cfg.voxel_size), float(eps), vox, frac)
         return vox, frac
 
-    def coarse_sdf(self, points: torch.Tensor, located: tuple[np.ndarray, np.ndarray] | None = None
+    def locate_points(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`locate` of world points (N, 3) metres, a tensor: voxel ids (N,) int64 and positions
+        in the voxel (N, 3) float32, on ``points``' device. With ``device_lookup`` (the torch backend)
+        the lookup runs there (:meth:`locate_tensor`, no host transfer); otherwise the numba kernel
+        runs on the host."""
+        if self.device_lookup:
+            return self.locate_tensor(points)
+        vox, frac = self.locate(points.detach().cpu().numpy())
+        return (torch.from_numpy(vox).to(points.device),
+                torch.from_numpy(frac.astype(np.float32)).to(points.device))
+
+    def locate_tensor(self, points: torch.Tensor, eps: float = 1e-5) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`locate`'s rule in torch on ``points``' device (N, 3) metres: voxel ids (N,) int64
+        (-1 outside) and positions in the voxel (N, 3) float32 in [0, 1]. The sorted key index on the
+        device answers with ``searchsorted``; a point on a face tries the up to 7 voxels across the
+        faces it lies on, all in fixed-shape tensor operations (no host transfer, no sync)."""
+        index = self.device_index(points.device)
+        p = points.detach().to(torch.float64).reshape(-1, 3) / self.cfg.voxel_size
+        finite = torch.isfinite(p).all(1)
+        p = torch.where(finite[:, None], p, torch.zeros_like(p))
+        g = torch.floor(p)
+        vox, corner = index.find(g), g
+        if len(index.sorted_keys):
+            a = torch.round(p)
+            on = (p - a).abs() < eps
+            for c in range(8):  # the first allocated voxel across the faces the point lies on (cell_of's order)
+                bits = torch.from_numpy(CORNERS[c].astype(bool)).to(p.device)
+                cand = torch.where(on, torch.where(bits, a, a - 1), g)
+                take = (vox < 0) & ~(bits & ~on).any(1)
+                found = index.find(cand)
+                take &= found >= 0
+                vox, corner = torch.where(take, found, vox), torch.where(take[:, None], cand, corner)
+        vox = torch.where(finite, vox, torch.full_like(vox, -1))
+        frac = (p - corner).clamp(0.0, 1.0).to(torch.float32)
+        return vox, frac
+
+    def device_index(self, device: torch.device) -> DeviceIndex:
+        """The sorted voxel keys, their ids, the voxels' corner ids and origins on ``device``, rebuilt
+        (one host-to-device copy) when voxels were added since. Safe beside an insertion on another
+        thread: it indexes only voxels whose corners are already recorded."""
+        keys, vv = self.voxels.keys, self.voxel_vertices
+        cached = self._device_index
+        if cached is None or cached[0] is not keys or cached[1] is not vv or \
+                cached[2].sorted_keys.device != torch.device(device):
+            sorted_keys, ids = self.voxels.index
+            known = ids < min(len(vv), len(keys))
+            index = DeviceIndex(torch.from_numpy(sorted_keys[known]).to(device),
+                                torch.from_numpy(ids[known]).to(device), torch.from_numpy(vv).to(device),
+                                torch.from_numpy(unpack(keys[:len(vv)]) * self.cfg.voxel_size).to(device))
+            self._device_index = cached = (keys, vv, index)
+        return cached[2]
+
+    def coarse_sdf(self, points: torch.Tensor, located: tuple[torch.Tensor, torch.Tensor] | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear prior SDF (truncation units) at points (N, 3) and a mask of points in a voxel
-        (0 outside); ``located`` = :meth:`locate`'s answer for these points, when the caller has it."""
-        vox, frac = self.locate(points.detach().cpu().numpy()) if located is None else located
-        inside = torch.from_numpy(vox >= 0).to(points.device)
+        (0 outside); ``located`` = :meth:`locate_points`' answer for these points (tensors on their
+        device), when the caller has it."""
+        vox, frac = self.locate_points(points) if located is None else located
+        inside = vox >= 0
         if len(self.voxel_vertices) == 0:  # an empty map: every point is outside
             return torch.zeros(len(points), dtype=self.priors.dtype, device=points.device), inside
-        f = torch.from_numpy(frac.astype(np.float32)).to(points.device)
-        vid = torch.from_numpy(self.voxel_vertices[np.maximum(vox, 0)]).to(points.device)
-        w = corner_weights(f)  # (N, 8)
+        corners = self.device_index(points.device).voxel_vertices
+        vid = corners[vox.clamp(min=0)]
+        w = corner_weights(frac.to(torch.float32))  # (N, 8)
         return (self.priors[vid] * w).sum(1) * inside, inside
 
     def table(self) -> VoxelTable:
@@ -379,6 +467,30 @@ def _build_table(voxel_keys: np.ndarray) -> VoxelTable:
     k.build_table(np.ascontiguousarray(voxel_keys, np.int64), hkeys, hids)
     ijk = unpack(voxel_keys)
     return VoxelTable(hkeys, hids, ijk.min(0).astype(np.int64), ijk.max(0).astype(np.int64) + 1)
+
+
+@dataclass(frozen=True)
+class DeviceIndex:
+    """The voxel key index as tensors on one device: packed keys sorted, the voxel id of each, and
+    the 8 corner vertex ids of every voxel (by id)."""
+
+    sorted_keys: torch.Tensor  # (V,) int64
+    ids: torch.Tensor  # (V,) int64
+    voxel_vertices: torch.Tensor  # (V, 8) int64
+    origins: torch.Tensor  # (V, 3) float64: each voxel's lower corner, metres
+
+    def find(self, ijk: torch.Tensor) -> torch.Tensor:
+        """Voxel ids (N,) int64 of integer coordinates ``ijk`` (N, 3) (float or int), -1 where
+        not allocated or outside the packable +-2^20 range."""
+        n = len(self.sorted_keys)
+        if n == 0:
+            return torch.full((len(ijk),), -1, dtype=torch.long, device=ijk.device)
+        v = ijk.to(torch.float64) + _OFF
+        ok = ((v >= 0) & (v <= _MASK)).all(1)
+        v = torch.where(ok[:, None], v, torch.zeros_like(v)).to(torch.long)
+        keys = (v[:, 2] << (2 * _BITS)) | (v[:, 1] << _BITS) | v[:, 0]
+        i = torch.searchsorted(self.sorted_keys, keys).clamp(max=n - 1)
+        return torch.where(ok & (self.sorted_keys[i] == keys), self.ids[i], torch.full_like(keys, -1))
 
 
 @dataclass(frozen=True)

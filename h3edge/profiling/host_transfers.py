@@ -6,8 +6,11 @@ On CUDA each is a device-to-host copy and a pipeline stall; on a CPU the same ca
 counting them there proves what a GPU run would do (issue [3/5]: the torch backend's training step
 and integration should stay on the device). ``x.cpu().numpy()`` on one line counts once. Counted:
 the calls h3edge makes itself (torch's own, e.g. an optimiser reading its CPU step counter, are
-not); not seen: the syncs inside torch operators (boolean-mask indexing, ``nonzero``), which a
-CUDA profile shows.
+not).
+
+Counted apart (``syncs``): the operators whose output size depends on the data, so that on CUDA
+the host waits for the device to learn it, with no copy of the data itself: ``nonzero``,
+``unique``, ``masked_select`` and indexing (reading or writing) with a boolean mask.
 
 Usage::
 
@@ -15,6 +18,7 @@ Usage::
         mapper.train_once()
     ht.total, ht.by_line()   # {"h3edge/mapping/trainer.py:128 cpu": 1, ...}
     ht.by_function()         # {"h3edge/mapping/cell_votes.py:sample_free": 3, ...}
+    ht.syncs, ht.syncs_by_function()   # the data-dependent shapes, apart
 """
 
 from __future__ import annotations
@@ -29,6 +33,13 @@ import torch
 _PACKAGE = str(Path(__file__).resolve().parents[1])  # .../h3edge
 _THIS = str(Path(__file__).resolve())
 _METHODS = ("cpu", "numpy", "item", "tolist", "__float__", "__int__", "__bool__", "__array__")
+_SYNC_METHODS = ("nonzero", "unique", "masked_select")  # Tensor methods and torch functions alike
+
+
+def _bool_index(index) -> bool:
+    """Whether an index (a tensor, or a tuple of indices) holds a boolean tensor."""
+    items = index if isinstance(index, tuple) else (index,)
+    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
 
 
 class HostTransfers:
@@ -38,7 +49,8 @@ class HostTransfers:
     def __init__(self):
         self.events: collections.Counter[tuple[str, str]] = collections.Counter()  # ("path:line", kind) -> count
         self.functions: collections.Counter[str] = collections.Counter()  # "path:function" -> count
-        self._saved: dict[str, object] = {}
+        self._saved: dict[tuple[object, str], object] = {}
+        self.sync_functions: collections.Counter[str] = collections.Counter()  # "path:function" -> syncs
         self._last: dict[int, tuple[str, str]] = {}  # thread id -> the last (site, kind): cpu then numpy
 
     @property
@@ -50,13 +62,22 @@ class HostTransfers:
         """``"path:line kind"`` (path relative to the repository) -> count, largest first."""
         return {f"{site} {kind}": n for (site, kind), n in self.events.most_common()}
 
+    @property
+    def syncs(self) -> int:
+        """Data-dependent shapes counted so far (module docstring)."""
+        return sum(self.sync_functions.values())
+
+    def syncs_by_function(self) -> dict[str, int]:
+        """``"path:function"`` -> syncs, largest first."""
+        return dict(self.sync_functions.most_common())
+
     def by_function(self) -> dict[str, int]:
         """``"path:function"`` -> count, largest first (stable across edits that move lines)."""
         return dict(self.functions.most_common())
 
     @staticmethod
     def _site() -> tuple[str, str] | None:
-        frame = sys._getframe(3)  # _site <- _record <- the patched method <- its caller
+        frame = sys._getframe(3)  # _site <- _record(_sync) <- the patched method <- its caller
         path = frame.f_code.co_filename
         if not path.startswith(_PACKAGE) or path == _THIS:
             return None
@@ -76,19 +97,46 @@ class HostTransfers:
         self.events[(site, kind.strip("_"))] += 1
         self.functions[function] += 1
 
+    def _record_sync(self) -> None:
+        where = self._site()
+        if where is not None:
+            self.sync_functions[where[1]] += 1
+
+    def _patch(self, owner: object, name: str, wrapper_of) -> None:
+        original = getattr(owner, name)
+        self._saved[(owner, name)] = original
+        setattr(owner, name, wrapper_of(original))
+
     def __enter__(self) -> HostTransfers:
         for name in _METHODS:
-            original = getattr(torch.Tensor, name)
-            self._saved[name] = original
+            def transfer(original, _name=name):
+                def wrapper(t, *args, **kwargs):
+                    self._record(_name)
+                    return original(t, *args, **kwargs)
+                return wrapper
+            self._patch(torch.Tensor, name, transfer)
 
-            def wrapper(t, *args, _name=name, _original=original, **kwargs):
-                self._record(_name)
-                return _original(t, *args, **kwargs)
+        def sync(original):
+            def wrapper(*args, **kwargs):
+                self._record_sync()
+                return original(*args, **kwargs)
+            return wrapper
 
-            setattr(torch.Tensor, name, wrapper)
+        def sync_if_bool(original):
+            def wrapper(t, index, *args):
+                if _bool_index(index):
+                    self._record_sync()
+                return original(t, index, *args)
+            return wrapper
+
+        for name in _SYNC_METHODS:
+            self._patch(torch.Tensor, name, sync)
+            self._patch(torch, name, sync)
+        self._patch(torch.Tensor, "__getitem__", sync_if_bool)
+        self._patch(torch.Tensor, "__setitem__", sync_if_bool)
         return self
 
     def __exit__(self, *exc) -> None:
-        for name, original in self._saved.items():
-            setattr(torch.Tensor, name, original)
+        for (owner, name), original in self._saved.items():
+            setattr(owner, name, original)
         self._saved.clear()
