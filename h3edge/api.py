@@ -45,6 +45,7 @@ from h3edge.profiling.timing import Timings
 __all__ = ["DecoderRuntime", "DistanceSample", "DistanceSlice", "FrameResult", "InferenceConfig", "MapSettings",
            "MapSnapshot", "Mapper", "as_intrinsics", "warm_up"]
 DEFAULT_PROFILE = "x86-cpu"
+MAX_SLICE_CELLS = 1 << 28  # cells a slice may have (a few GB of working arrays): beyond, a mistake, not a map
 
 
 def _host(a, what: str) -> np.ndarray:
@@ -449,4 +450,9 @@ def _slice(view: MapView, z: float, lo, hi, resolution: float) -> DistanceSlice:
         raise InputError("slice needs lo = (xmin, ymin) < hi = (xmax, ymax)")
     if not (resolution > 0 and np.isfinite([z, *lo, *hi]).all()):
         raise InputError("slice needs a finite z, corners and a positive resolution")
+    with np.errstate(over="ignore"):
+        cells = float(np.ceil((hi[0] - lo[0]) / resolution)) * float(np.ceil((hi[1] - lo[1]) / resolution))
+    if not cells <= MAX_SLICE_CELLS:
+        raise InputError(f"a slice of {cells:.4g} cells is more than {MAX_SLICE_CELLS}: a coarser resolution or a "
+                         "smaller area")
     return distance_slice(view, float(z), lo, hi, float(resolution))

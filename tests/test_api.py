@@ -113,6 +113,16 @@ def test_queries_answer_in_world_metres(small_mapper):
     assert np.array_equal(snap.render(f.intrinsics, f.pose)[1], depth)
     sl = m.slice(float(f.pose[2, 3]), (-3.0, -3.0), (3.0, 3.0), 0.1)
     assert sl.occupancy.shape == (60, 60) and (sl.occupancy == 0).any()
+    # beyond mapper.max_position: a render is refused at once, distances read unknown, a slice too big is refused
+    far = f.pose.copy()
+    far[0, 3] = 1e17
+    with pytest.raises(InputError, match="max_position"):
+        m.render(f.intrinsics, far)
+    out = m.signed_distance(np.array([[1e17, 0.0, 0.0], [0.0, 1e300, 0.0], world(rays * z)[0]]))
+    assert out.state[:2].tolist() == [0, 0] and np.isnan(out.sdf[:2]).all() and out.state[2] != 0
+    assert (m.slice(1e300, (0.0, 0.0), (1.0, 1.0), 0.5).occupancy == -1).all()
+    with pytest.raises(InputError, match="cells"):
+        m.slice(0.0, (-1e308, -1e308), (1e308, 1e308), 1.0)
 
 
 def test_saved_map_loads_with_its_own_settings(small_mapper, tmp_path):

@@ -84,3 +84,17 @@ def test_pose_interpolation_slerp():
     assert ang == pytest.approx(45.0)
     with pytest.raises(ValueError):
         pose_from_tq(np.zeros(3), np.zeros(4))
+
+
+def test_intrinsics_must_describe_a_pinhole_camera():
+    """Issue [4/5] 8: fx = 1e-6 or cx = 1e300 made rays of astronomical length (an overflow deep in
+    integration); the constructor refuses them with the reason, and real cameras pass."""
+    Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # Kinect
+    Intrinsics(1280, 720, 390.0, 390.0, 640.0, 360.0)  # a wide RealSense depth camera
+    Intrinsics(8, 6, 6.0, 6.0, 4.0, 3.0)
+    for fx, cx in ((1e-300, 320.0), (1e-6, 320.0), (10.0, 320.0)):
+        with pytest.raises(ValueError, match="degrees off the optical axis"):
+            Intrinsics(640, 480, fx, 525.0, cx, 240.0)
+    for cx in (1e300, -1e4, 2000.0):
+        with pytest.raises(ValueError, match="principal point"):
+            Intrinsics(640, 480, 525.0, 525.0, cx, 240.0)

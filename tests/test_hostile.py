@@ -5,10 +5,12 @@ later valid messages do, except by mapping valid data."""
 
 from __future__ import annotations
 
+import io
 import json
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from benchmarks.frame_memory import frame_at, png_bomb, splice
@@ -174,6 +176,53 @@ def test_hostile_queries_get_error_replies_and_mapping_goes_on(hostile):
     errors = [r.err.payload.to_bytes().decode() for r in s.get("h3edge/hostile/**", timeout=30) if r.err is not None]
     assert any("exact key" in e for e in errors), errors
     assert robot.status()["last_checkpoint"] == checkpoint
+    robot.good_frames_map()
+
+
+def test_far_away_and_overflowing_queries_are_refused_and_the_query_worker_lives(hostile):
+    """Issue [4/5] 1 and 8: a render from 1e17 m hung the heavy-query worker (every later query timed
+    out); a slice of +-1e308 m or at z = 1e300 was an internal error. Now: refusals or unknown answers,
+    each within seconds, and a render after them still answers."""
+    robot = hostile["robot"]
+    s = robot.session
+    for far in (1e17, 1e39, 1e300):
+        t0 = time.monotonic()
+        with pytest.raises(RemoteError, match="max_position"):
+            query(s, KEYS.render, {"pose": {"t": [far, 0, 0], "q": [0, 0, 0, 1]}, "width": 64, "height": 48},
+                  timeout=30)
+        assert time.monotonic() - t0 < 10
+    with pytest.raises(RemoteError, match="cells"):
+        query(s, KEYS.slice, {"z": 0.5, "aabb": [[-1e308, -1e308], [1e308, 1e308]], "resolution": 1.0}, timeout=30)
+    far_slice = np.load(io.BytesIO(query(s, KEYS.slice, {"z": 1e300, "aabb": "0,0,1,1", "resolution": 0.5},
+                                         timeout=30)))
+    assert (far_slice["occupancy"] == -1).all()  # nothing is known up there
+    with pytest.raises(RemoteError, match="finite coordinates within"):
+        query(s, KEYS.sdf, {"points": [[1e300, 0, 0], [0, 0, -1e300]]}, timeout=30)
+    f = robot.seq[0]
+    pose = {"matrix": f.pose.reshape(-1).tolist()}
+    reply = query(s, KEYS.render, {"pose": pose, "width": 64, "height": 48}, timeout=60)
+    assert reply  # the heavy-query worker still answers
+
+
+def test_frames_of_no_pinhole_camera_are_counted_drops(hostile):
+    """Issue [4/5] 8: fx = 1e-300, fx = 1e-6 or cx = 1e300 were internal errors; now malformed
+    frames, and good frames map after them."""
+    robot = hostile["robot"]
+    before = robot.status()
+    f = robot.seq[5]
+    i = f.intrinsics
+    bad = [(1e-300, i.fy, i.cx, i.cy), (1e-6, i.fy, i.cx, i.cy), (i.fx, i.fy, 1e300, i.cy)]
+    for k, (fx, fy, cx, cy) in enumerate(bad):
+        data = encode_frame(FrameMessage(time.time_ns(), 200 + k, f.color, f.depth, i, f.pose))
+        n = int.from_bytes(data[4:8], "little")
+        header = json.loads(data[8:8 + n])
+        header["intrinsics"] = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+        hb = json.dumps(header).encode()
+        robot.put_frame(data[:4] + len(hb).to_bytes(4, "little") + hb + data[8 + n:])
+        time.sleep(0.3)
+    after = robot.settle(before["frames"]["received"] + len(bad))
+    assert _dropped(before, after, "malformed") == len(bad), after["dropped"]
+    assert "internal_error" not in after["dropped"]
     robot.good_frames_map()
 
 

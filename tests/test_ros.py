@@ -177,6 +177,9 @@ def test_frames_before_the_first_camera_info_wait_for_it_in_order():
     assert sink.frames == [] and ing.drops["ros_no_camera_info"] == 2  # the wait holds pair_buffer pairs
     on["camera_info"](ros.serialize(ros.camera_info_message(Intrinsics(4, 3, 3.0, 3.0, 2.0, 1.5), 0, "cam")))
     assert sink.frames == []  # another size does not release them
+    on["camera_info"](ros.serialize(ros.camera_info_message(Intrinsics(8, 6, 6.0, 6.0, 4.0, 3.0), 0, "cam")
+                                    ).replace(np.float64(6.0).tobytes(), np.float64(1e-6).tobytes()))
+    assert sink.frames == [] and ing.drops["ros_bad_camera_info"] == 1  # fx = 1e-6: no pinhole camera, a drop
     on["camera_info"](ros.serialize(ros.camera_info_message(intr, 0, "cam")))
     on["color"](ros.serialize(ros.color_message(rgb, t0 + 5 * 33_000_000, "cam")))
     on["depth"](ros.serialize(ros.depth_message(depth, t0 + 5 * 33_000_000, "cam")))

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 PIXEL_CENTER_OFFSET = 0.5
+MAX_RAY_ANGLE_DEG = 85.0  # a pinhole image's edge rays: a 170-degree field of view at most
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,17 @@ class Intrinsics:
         vals = (self.fx, self.fy, self.cx, self.cy)
         if not all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+        # a pinhole camera: the principal point within an image size of the image, every pixel's ray
+        # less than MAX_RAY_ANGLE_DEG off the optical axis (fx = 1e-6 or cx = 1e300 would make rays
+        # of 1e300 m per metre of depth)
+        if not (-self.width <= self.cx <= 2 * self.width and -self.height <= self.cy <= 2 * self.height):
+            raise ValueError(f"principal point ({self.cx:g}, {self.cy:g}) is more than an image size outside the "
+                             f"{self.width}x{self.height} image")
+        reach = np.tan(np.radians(MAX_RAY_ANGLE_DEG))
+        if max(abs(self.cx), abs(self.width - self.cx)) > reach * self.fx or \
+                max(abs(self.cy), abs(self.height - self.cy)) > reach * self.fy:
+            raise ValueError(f"focal lengths fx={self.fx:g} fy={self.fy:g} px put the {self.width}x{self.height} "
+                             f"image's edge rays more than {MAX_RAY_ANGLE_DEG} degrees off the optical axis")
 
     @property
     def K(self) -> np.ndarray:

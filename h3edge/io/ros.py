@@ -172,7 +172,10 @@ def camera_intrinsics(msg) -> Intrinsics:
     w, h = int(msg.width), int(msg.height)
     if w <= 0 or h <= 0 or fx <= 0 or fy <= 0:
         raise RosMessageError(f"camera info: size {w}x{h}, fx {fx}, fy {fy}")
-    return Intrinsics(w, h, float(fx), float(fy), float(cx), float(cy))
+    try:
+        return Intrinsics(w, h, float(fx), float(fy), float(cx), float(cy))
+    except ValueError as e:  # not a pinhole camera (fx = 1e-6, cx = 1e300): a counted drop, not a crash
+        raise RosMessageError(f"camera info: {e}") from None
 
 
 def camera_info_message(intr: Intrinsics, stamp: int, frame_id: str):

@@ -59,13 +59,22 @@ def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int
     sdf = np.full(len(pts), np.nan, np.float32)
     state = np.zeros(len(pts), np.uint8)
     grad = np.full((len(pts), 3), np.nan, np.float32) if gradient else None
+    # beyond max_position the map knows nothing (and voxel keys cannot hold such coordinates): unknown
+    with np.errstate(invalid="ignore"):
+        within = np.abs(pts).max(1, initial=0.0) <= min(view.max_position, view.voxel_size * (2 ** 20 - 2))
     for a in range(0, len(pts), chunk):
         p = pts[a:a + chunk]
+        ok = within[a:a + chunk]
+        if not ok.all():  # evaluated as the origin, then forgotten
+            p = np.where(ok[:, None], p, 0.0)
         s, known, allocated = _field_sdf(view, p, lookup)
+        known &= ok
+        allocated &= ok
+        s[~ok] = np.nan
         st = np.zeros(len(p), np.uint8)
         st[known] = np.where(s[known] >= tr, FREE, np.where(s[known] <= -tr, INSIDE, NEAR))
         if view.free_space is not None:  # a voxel without observed priors may hold a surface: unknown
-            free = ~allocated & view.free_space.contains(p)
+            free = ~allocated & view.free_space.contains(p) & ok
             s[free], st[free] = tr, FREE
         sdf[a:a + chunk], state[a:a + chunk] = s, st
         if gradient and known.any():

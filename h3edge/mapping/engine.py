@@ -585,7 +585,7 @@ class MapEngine:
         return MapView(self.field, self.voxels, self.settings.voxels.voxel_size, self.settings.render,
                        self.cfg.mesh_resolution, self.frames_mapped,
                        self.cfg.mesh_min_support, self.free_space,
-                       self.cell_votes if self.cell_votes.enabled else None)
+                       self.cell_votes if self.cell_votes.enabled else None, self.cfg.max_position)
 
     def _note_changes(self, new_keys: np.ndarray, prior_set_before: np.ndarray) -> None:
         """Remember where this frame changed the map's geometry: its new voxels, and the voxels around

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 import trimesh
 
-from h3edge.geometry.camera import Intrinsics
+from h3edge.errors import InputError
+from h3edge.geometry.camera import Intrinsics, rigid_error
 from h3edge.mapping.cell_votes import CellVotes
 from h3edge.mapping.field import Field
 from h3edge.mapping.free_space import FreeSpace
@@ -50,8 +51,12 @@ def _voxels_copy(voxels: VoxelMap) -> VoxelMap:
 class MapView:
     def __init__(self, field: Field, voxels: VoxelMap, voxel_size: float, render_cfg: RenderConfig,
                  mesh_resolution: int, frames_mapped: int = 0, mesh_min_support: float = 0.0,
-                 free_space: FreeSpace | None = None, votes: CellVotes | None = None):
+                 free_space: FreeSpace | None = None, votes: CellVotes | None = None,
+                 max_position: float = float("inf")):
         self.field, self.voxels, self.free_space = field, voxels, free_space
+        # m: the farthest point from the world origin a query reads the map at (mapper.max_position):
+        # a render camera beyond is refused, a distance query there reads unknown
+        self.max_position = max_position
         # the fine free-space votes a render's and mesh's SDF floor reads (render.free_floor); a frozen
         # copy shares the live ones (1 KB a voxel: a copy per query would not fit the memory plan), so a
         # query may see the cells a frame integrated since voted free, never a torn array (rows only grow)
@@ -72,7 +77,7 @@ class MapView:
         return MapView(field, _voxels_copy(self.voxels), self.voxel_size, self.render_cfg, self.mesh_resolution,
                        self.frames_mapped, self.mesh_min_support,
                        copy.deepcopy(self.free_space) if self.free_space is not None else None,
-                       self.votes)
+                       self.votes, self.max_position)
 
     @property
     def device(self) -> torch.device:
@@ -93,7 +98,16 @@ class MapView:
         return MapRenderer(self.field, self.voxels, self.render_cfg, self.votes)
 
     def render(self, intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit)."""
+        """(uint8 RGB (H, W, 3), float32 z-depth metres (H, W), 0 where nothing was hit). InputError for
+        a camera pose that is not a finite rigid transform or lies beyond ``max_position`` (the ray
+        marches step centimetres along rays: from farther than float64 resolves they would not end)."""
+        err = rigid_error(np.asarray(c2w, np.float64))
+        if err:
+            raise InputError(f"render pose: {err}")
+        dist = float(np.linalg.norm(np.asarray(c2w, np.float64)[:3, 3]))
+        if dist > self.max_position:
+            raise InputError(f"render camera {dist:.4g} m from the world origin, beyond mapper.max_position "
+                             f"({self.max_position:g} m)")
         return self.renderer().render(intr, c2w)
 
     @torch.no_grad()

@@ -164,9 +164,10 @@ class SliceRequest:
             raise QueryError("slice aabb must be x0,y0,x1,y1 with x0 < x1 and y0 < y1")
         if not 0.005 <= res <= 10.0:
             raise QueryError(f"slice resolution must be 0.005..10 m, got {res:g}")
-        cells = int(np.ceil((v[2] - v[0]) / res)) * int(np.ceil((v[3] - v[1]) / res))
-        if cells > max_cells:
-            raise QueryError(f"a slice of {cells} cells exceeds this service's cap of {max_cells}: a coarser "
+        with np.errstate(over="ignore"):  # a box of +-1e308 m is inf cells wide: refused below, never an overflow
+            cells = float(np.ceil((v[2] - v[0]) / res)) * float(np.ceil((v[3] - v[1]) / res))
+        if not cells <= max_cells:
+            raise QueryError(f"a slice of {cells:.4g} cells exceeds this service's cap of {max_cells}: a coarser "
                              "resolution or a smaller aabb")
         return cls(z, (v[0], v[1]), (v[2], v[3]), res)
 

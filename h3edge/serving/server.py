@@ -24,7 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
-from h3edge.errors import QueryError
+from h3edge.errors import InputError, QueryError
 from h3edge.io.protocol import Keys
 from h3edge.serving.queries import MESH_FORMATS, MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
 
@@ -107,7 +107,7 @@ class ZenohServer:
                 try:
                     payload, encoding = fn(query)
                     query.reply(query.key_expr, payload, encoding=encoding)
-                except QueryError as e:
+                except InputError as e:  # a query refused, by the parser (QueryError) or the library
                     query.reply_err(str(e))
                 except Exception as e:  # noqa: BLE001 - any failure becomes an error reply
                     log.exception("query on %s failed", query.key_expr)
