@@ -381,6 +381,12 @@ class Mapper:
         """Timestamp (seconds, as given to :meth:`add_frame`) of the newest mapped frame; None before one."""
         return self._engine.last_timestamp
 
+    def forget_last_timestamp(self) -> None:
+        """Forget :attr:`last_timestamp`: the next frame may carry any stamp. For a map whose newest
+        stamp came from a clock that is no longer the input's (a recording replayed, a clock reset)."""
+        with self._engine.exclusive():
+            self._engine.last_timestamp = None
+
     @property
     def dropped(self) -> dict[str, int]:
         """Frames dropped, by reason (``bad_pose``, ``no_depth``, ...), across save and load."""

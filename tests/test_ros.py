@@ -188,6 +188,22 @@ def test_frames_before_the_first_camera_info_wait_for_it_in_order():
     assert ing.status()["frames"] == 4 and ing.drops["ros_no_camera_info"] == 2
 
 
+def test_oversized_images_are_refused_before_they_are_decoded_or_buffered():
+    """Issue [4/5] 3: 62 MB images were decoded and buffered waiting for a pair (the service grew by
+    gigabytes); an image over the service's pixel cap is now a drop, by its bytes or its header."""
+    sink = Sink()
+    ing = RosIngest(RosConfig(base_to_camera=EXTRINSIC), sink.frames.append, lambda t, p: None,
+                    lambda c, m: sink.errors.append(c), max_pixels=64 * 48)
+    big = np.zeros((480, 640, 3), np.uint8)
+    ing.handler("color")(ros.serialize(ros.color_message(big, 1, "cam")))
+    ing.handler("depth")(ros.serialize(ros.depth_message(np.ones((480, 640), np.float32), 1, "cam")))
+    small_bytes = ros.color_message(np.zeros((48, 64, 3), np.uint8), 2, "cam")
+    small_bytes.width, small_bytes.height = 640, 480  # a header that claims more than its bytes hold
+    ing.handler("color")(ros.serialize(small_bytes))
+    assert ing.drops["ros_image_too_large"] == 3 and not ing._colors and not ing._depths
+    assert "ros_internal_error" not in ing.drops
+
+
 def test_tf_messages_take_only_the_base_transform():
     ing, sink = _ingest(pose_type="tf", world_frame="odom")
     base = _pose(5)
@@ -195,6 +211,13 @@ def test_tf_messages_take_only_the_base_transform():
                          (np.eye(4), 1, "base_link", "laser")])
     ing.handler("pose")(ros.serialize(tf))
     assert len(sink.poses) == 1 and not ing.drops
+    # issue [4/5] 5: a NaN or a non-unit rotation on another link, among thousands, costs the base pose nothing
+    links = [(np.eye(4), 2, "base_link", f"link{i}") for i in range(2000)]
+    tf = ros.tf_message([*links, (base, 2, "odom", "base_link")])
+    tf.transforms[0].transform.translation.x = float("nan")
+    tf.transforms[1].transform.rotation.w = 3.0
+    ing.handler("pose")(ros.serialize(tf))
+    assert len(sink.poses) == 2 and not ing.drops and np.allclose(sink.poses[-1][1], base @ extrinsic_matrix(EXTRINSIC))
 
 
 # --------------------------------------------------------------------------- the whole ROS path

@@ -127,6 +127,25 @@ def test_pose_buffer_interpolates_waits_and_misses():
     assert len(b) == 4
 
 
+def test_poses_stamped_ahead_neither_block_frames_nor_push_out_the_present_ones():
+    """Issue [4/5] 2: one pose stamped far ahead made every frame whose own next pose came late a
+    miss; a flood of them pushed the real poses out of the buffer."""
+    b = PoseBuffer(capacity=50, max_gap_s=0.1)
+    step = 10_000_000  # 100 Hz
+    for k in range(20):
+        b.add(k * step, POSE)
+    b.add(3_000 * 1_000_000_000, POSE)  # 50 min ahead
+    assert b.lookup(19 * step + step // 2) == ("wait", None)  # its own next pose may still come
+    b.add(20 * step, POSE)
+    assert b.lookup(19 * step + step // 2)[0] == "ok"
+    for k in range(500):  # a flood ahead of the stream's present
+        b.add(3_000 * 1_000_000_000 + (k + 1) * step, POSE)
+    assert len(b) == 50
+    for k in range(21, 30):  # the stream goes on: its poses stay and its frames associate
+        b.add(k * step, POSE)
+        assert b.lookup(k * step - step // 2)[0] == "ok", k
+
+
 def test_an_outlier_pose_refuses_only_the_frames_beside_it():
     """A pose 100 m off between good ones: frames interpolated across it are misses (implausible
     speed), frames between good poses still associate, and the buffer keeps its order (issue 16,

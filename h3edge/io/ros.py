@@ -203,8 +203,10 @@ def _matrix(position, orientation) -> np.ndarray:
     return m
 
 
-def poses_from_message(msg, msgtype: str) -> list[RosPose]:
-    """The poses a pose message carries (one, or every transform of a TF message)."""
+def poses_from_message(msg, msgtype: str, base_frame: str | None = None) -> list[RosPose]:
+    """The poses a pose message carries (one, or every transform of a TF message). With
+    ``base_frame``, a TF message's transforms of other children are left out before they are read:
+    other links of the tree, a NaN or a long list among them, never cost the robot's pose."""
     if msgtype == ODOMETRY:
         return [RosPose(stamp_ns(msg.header), msg.header.frame_id, msg.child_frame_id,
                         _matrix(msg.pose.pose.position, msg.pose.pose.orientation))]
@@ -213,7 +215,8 @@ def poses_from_message(msg, msgtype: str) -> list[RosPose]:
                                                                                 msg.pose.orientation))]
     if msgtype == TF:
         return [RosPose(stamp_ns(tf.header), tf.header.frame_id, tf.child_frame_id,
-                        _matrix(tf.transform.translation, tf.transform.rotation)) for tf in msg.transforms]
+                        _matrix(tf.transform.translation, tf.transform.rotation)) for tf in msg.transforms
+                if base_frame is None or tf.child_frame_id == base_frame]
     raise RosMessageError(f"{msgtype} is not a pose type ({', '.join(POSE_TYPES.values())})")
 
 

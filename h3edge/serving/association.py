@@ -1,12 +1,16 @@
 """Pose buffer: associates frames to poses by timestamp (SLERP rotation + linear translation).
 
 Poses arrive on their own key at their own rate and may come late, out of order or twice. The
-buffer keeps the most recent ``capacity`` poses sorted by time; :meth:`PoseBuffer.lookup` answers
-a frame timestamp with
+buffer keeps ``capacity`` poses sorted by time; when full, it lets go of the pose farthest in time
+from the stream's present (the newest frame stamp looked up, before any the host clock), the oldest
+or the newest: a flood of poses stamped ahead of the present pushes out each other, not the present
+ones. :meth:`PoseBuffer.lookup` answers a frame timestamp with
 
 * ``("ok", pose)``: an exact match, or the interpolation between the poses just before and just
   after it when they are at most ``max_gap`` apart;
-* ``("wait", None)``: no pose at or after the timestamp yet (the caller waits a little);
+* ``("wait", None)``: no pose at or after the timestamp yet, or the next one lies more than
+  ``max_gap`` ahead while the previous one is within ``max_gap`` before it (its own next pose may
+  still come: one pose stamped far ahead does not make later frames misses; the caller waits a little);
 * ``("miss", reason)``: the poses around it are too far apart in time, or imply a motion faster
   than ``max_speed`` (one of them is an outlier: the frame is refused, the buffer is not changed,
   so one bad pose affects only the frames stamped next to it and ages out with the buffer), or
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import bisect
 import threading
+import time
 
 import numpy as np
 
@@ -33,6 +38,7 @@ class PoseBuffer:
         self.max_speed = max_speed  # m/s between two buffered poses a frame is interpolated from
         self._t: list[int] = []
         self._poses: list[np.ndarray] = []
+        self._present: int | None = None  # ns: the newest frame stamp looked up
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
@@ -50,11 +56,14 @@ class PoseBuffer:
             self._t.insert(i, timestamp_ns)
             self._poses.insert(i, pose)
             if len(self._t) > self.capacity:
-                del self._t[0], self._poses[0]
+                present = self._present if self._present is not None else time.time_ns()
+                end = 0 if present - self._t[0] >= self._t[-1] - present else -1  # the farther from the present
+                del self._t[end], self._poses[end]
         return ""
 
     def lookup(self, timestamp_ns: int) -> tuple[str, object]:
         with self._lock:
+            self._present = timestamp_ns if self._present is None else max(self._present, timestamp_ns)
             if not self._t or timestamp_ns > self._t[-1]:
                 return "wait", None
             i = bisect.bisect_left(self._t, timestamp_ns)
@@ -64,6 +73,8 @@ class PoseBuffer:
                 return "miss", f"frame is older than every buffered pose ({(self._t[0] - timestamp_ns) / 1e6:.1f} ms)"
             t0, t1 = self._t[i - 1], self._t[i]
             a, b = self._poses[i - 1], self._poses[i]
+        if t1 - t0 > self.max_gap_ns and timestamp_ns - t0 <= self.max_gap_ns:
+            return "wait", None  # the pose after the frame may still come (the one buffered is far ahead)
         if t1 - t0 > self.max_gap_ns:
             return (
                 "miss",

@@ -37,6 +37,7 @@ from h3edge.io.protocol import FrameMessage, encode_frame
 from h3edge.io.ros import RosConfig, extrinsic_matrix
 
 log = logging.getLogger(__name__)
+IMAGE_HEADER_BYTES = 4096  # bytes of a sensor_msgs/Image besides its pixels (stamp, frame id, encoding) allowed
 
 
 @dataclass
@@ -50,15 +51,18 @@ class RosIngest:
     """ROS 2 messages -> the service's frames and poses (module docstring).
 
     ``submit_frame(bytes)``: a raw frame message for the queue; ``add_pose(stamp_ns, matrix)``: a
-    camera pose; ``on_error(code, text)``: every refused message."""
+    camera pose; ``on_error(code, text)``: every refused message. ``max_pixels``: an image with more
+    pixels is refused (``ros_image_too_large``) before it is decoded or buffered, from its byte
+    count (4 bytes a pixel at most) and then its header."""
 
     def __init__(self, cfg: RosConfig, submit_frame: Callable[[bytes], None],
-                 add_pose: Callable[[int, np.ndarray], None], on_error: Callable[[str, str], None]):
+                 add_pose: Callable[[int, np.ndarray], None], on_error: Callable[[str, str], None],
+                 max_pixels: int = 1920 * 1080):
         if not cfg.base_to_camera:
             raise InputError("ROS input needs the base -> camera extrinsic: set [ros] base_to_camera "
                              "('x y z qx qy qz qw', the camera optical frame in base_frame) or 'identity' when "
                              "the poses are the camera's own")
-        self.cfg = cfg
+        self.cfg, self.max_pixels = cfg, max_pixels
         self.extrinsic = extrinsic_matrix(cfg.base_to_camera)
         self.submit_frame, self.add_pose, self.on_error = submit_frame, add_pose, on_error
         self._lock = threading.Lock()
@@ -99,7 +103,15 @@ class RosIngest:
 
     # ------------------------------------------------------------------ images
     def _image(self, data: bytes, depth: bool) -> _Image | None:
+        what = "depth" if depth else "colour"
+        if len(data) > 4 * self.max_pixels + IMAGE_HEADER_BYTES:
+            self._drop("ros_image_too_large", f"{what} image of {len(data)} bytes: more than {self.max_pixels} pixels")
+            return None
         msg = ros.deserialize(data, ros.IMAGE)
+        if int(msg.width) * int(msg.height) > self.max_pixels:
+            self._drop("ros_image_too_large", f"{what} image {msg.width}x{msg.height}: more than {self.max_pixels} "
+                                              "pixels")
+            return None
         if self.cfg.camera_frame and msg.header.frame_id != self.cfg.camera_frame:
             self._drop("ros_frame_id", f"{'depth' if depth else 'colour'} image in frame {msg.header.frame_id!r}, "
                                        f"not camera_frame {self.cfg.camera_frame!r}")
@@ -181,7 +193,7 @@ class RosIngest:
     # ------------------------------------------------------------------- poses
     def on_pose(self, data: bytes) -> None:
         msgtype = ros.POSE_TYPES[self.cfg.pose_type]
-        poses = ros.poses_from_message(ros.deserialize(data, msgtype), msgtype)
+        poses = ros.poses_from_message(ros.deserialize(data, msgtype), msgtype, self.cfg.base_frame)
         cfg = self.cfg
         for p in poses:
             why = ros.pose_mismatch(p, msgtype, cfg.world_frame, cfg.base_frame)

@@ -64,6 +64,7 @@ from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, Sdf
 from h3edge.serving.ros_ingest import RosIngest
 
 log = logging.getLogger(__name__)
+MAX_ERROR_CHARS = 400  # characters of a refused message's error text kept in the status and the log
 
 
 @dataclass(frozen=True)
@@ -84,9 +85,9 @@ class ServiceConfig:
     """poses kept for association"""
     pose_max_speed: float = 20.0
     """m/s: two poses implying more are not interpolated between (an outlier)"""
-    max_future_s: float = 3600.0
-    """frames and poses stamped further ahead of this host's clock are refused (future_timestamp / future_pose): one
-    such stamp would otherwise make every later valid frame stale, for good"""
+    max_future_s: float = 2.0
+    """s: frames and poses stamped further ahead of this host's clock are refused (future_timestamp / future_pose); a
+    frame stamped ahead within it makes later frames stale for at most this long (clocks: NTP or PTP)"""
     memory_budget_mb: int = 2048
     """the map's memory (tables, voxels, keyframes, query snapshots)"""
     max_frame_pixels: int = 1920 * 1080
@@ -157,8 +158,9 @@ class MapService:
             resumed, self.resumed_from = self.checkpoints.resume()
             if resumed is not None:
                 self.mapper.replace_map(resumed)
+                self._check_clock()
         self.ingest = Ingest(cfg.ingest_queue, cfg.max_future_s, self.poses, self.mapper.timings, self._error)
-        self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error)
+        self.ros = (RosIngest(ros, self.ingest.submit_frame, self.ingest.add_pose, self._error, cfg.max_frame_pixels)
                     if ros is not None else None)
         self.durations: DurationLog | None = None
         try:
@@ -244,9 +246,23 @@ class MapService:
     def _training_error(self, e: Exception) -> None:
         self._error("internal_error", f"training step: {type(e).__name__}: {e}")
 
+    def _check_clock(self) -> None:
+        """A map loaded with its newest stamp beyond the host clock's future tolerance (saved before
+        the tolerance was seconds, or on a host whose clock was ahead) would make every frame stale
+        until that time: its stamp bound is forgotten, with a warning."""
+        last = self.mapper.last_timestamp
+        if last is not None and last > time.time() + self.cfg.max_future_s:
+            log.warning("the loaded map's newest frame is stamped %.0f s ahead of this host's clock: forgetting it, "
+                        "so that frames stamped now map", last - time.time())
+            self.mapper.forget_last_timestamp()
+
     def _error(self, code: str, text: str) -> None:
-        self.last_error = {"code": code, "message": text, "unix": time.time()}
-        log.warning("%s: %s", code, text)
+        """Record a refused message (``last_error`` in the status) and log it, the text cut to
+        ``MAX_ERROR_CHARS``: a message quotes what it refused (a frame id, a stamp), which a
+        hostile sender makes as long as it likes."""
+        text = text if len(text) <= MAX_ERROR_CHARS else f"{text[:MAX_ERROR_CHARS]}... ({len(text)} characters)"
+        self.last_error = {"code": code[:64], "message": text, "unix": time.time()}
+        log.warning("%s: %s", code[:64], text)
 
     # ------------------------------------------------------------ mapper thread
     def _run(self) -> None:
@@ -406,6 +422,7 @@ class MapService:
             self._mapped_at_start = mapper.frames_mapped - (old.frames_mapped - self._mapped_at_start)
             self._dropped_at_start = mapper.dropped
             old.replace_map(mapper)
+            self._check_clock()
         self._view, self._view_time = None, 0.0
         self._stats = self._collect_stats()
         voxels = self._stats.get("voxels", 0)
