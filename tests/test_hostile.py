@@ -133,6 +133,50 @@ def test_poses_stamped_at_the_end_of_time_or_huge_do_not_block_association(hosti
     assert after["frames"]["mapped"] == mid["frames"]["mapped"] + 2, (after["dropped"], after["last_error"])
 
 
+def test_stamps_ahead_of_the_clock_do_not_poison_later_frames(hostile):
+    """Issue [4/5] 2: a frame stamped now + 50 min was mapped (inside the old 1 h tolerance) and every
+    later good frame was stale, also after a restart; a pose stamped far ahead made frames whose own
+    next pose came late no_pose. Now the tolerance is seconds: the frame is refused, a frame stamped
+    1 s ahead stales later frames for about that long only, and the far pose costs nothing."""
+    robot = hostile["robot"]
+    before = robot.status()
+    robot.put_frame(robot.good_frame(ts_ns=time.time_ns() + 50 * 60 * 10 ** 9)[0])
+    robot.put_pose(encode_pose(PoseMessage(time.time_ns() + 50 * 60 * 10 ** 9, robot.seq[0].pose)))
+    time.sleep(0.3)
+    robot.put_frame(robot.good_frame(ts_ns=time.time_ns() + 10 ** 9)[0])  # 1 s ahead: inside the tolerance
+    after = robot.settle(before["frames"]["received"] + 2)
+    assert _dropped(before, after, "future_timestamp") == 1 and _dropped(before, after, "future_pose") == 1
+    assert after["frames"]["mapped"] == before["frames"]["mapped"] + 1
+    time.sleep(1.2)
+    robot.good_frames_map()
+    pose_ahead = encode_pose(PoseMessage(time.time_ns() + 1_500_000_000, robot.seq[1].pose))  # inside it
+    robot.put_pose(pose_ahead)
+    mid = robot.status()
+    for _ in range(2):  # each frame's own poses arrive after it, the second one late
+        data, ts = robot.good_frame(embed_pose=False)
+        pose = robot.seq[(robot.i - 1) % len(robot.seq)].pose
+        robot.put_pose(encode_pose(PoseMessage(ts - 20_000_000, pose)))
+        robot.put_frame(data)
+        time.sleep(0.1)
+        robot.put_pose(encode_pose(PoseMessage(ts + 20_000_000, pose)))
+        time.sleep(0.4)
+    after = robot.settle(mid["frames"]["received"] + 2)
+    assert after["frames"]["mapped"] == mid["frames"]["mapped"] + 2, (after["dropped"], after["last_error"])
+
+
+def test_error_texts_stay_short_whatever_the_message_quotes(hostile):
+    """Issue [4/5] 4: a pose whose stamp was a 16 MB string made every status reply 16.8 MB."""
+    robot = hostile["robot"]
+    before = robot.status()
+    robot.put_pose(b'{"v": 1, "timestamp_ns": "' + b"9" * 2_000_000 + b'", "t": [0, 0, 0], "q": [0, 0, 0, 1]}')
+    time.sleep(0.5)
+    raw = query(robot.session, KEYS.status, timeout=10)
+    after = json.loads(raw)
+    assert _dropped(before, after, "malformed_pose") == 1, after["dropped"]
+    assert len(raw) < 64 * 1024 and len(after["last_error"]["message"]) <= 500
+    robot.good_frames_map()
+
+
 def test_image_bombs_and_oversized_frames_are_refused_before_decoding(hostile):
     robot = hostile["robot"]
     before = robot.status()

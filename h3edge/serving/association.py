@@ -8,9 +8,9 @@ ones. :meth:`PoseBuffer.lookup` answers a frame timestamp with
 
 * ``("ok", pose)``: an exact match, or the interpolation between the poses just before and just
   after it when they are at most ``max_gap`` apart;
-* ``("wait", None)``: no pose at or after the timestamp yet, or the next one lies more than
-  ``max_gap`` ahead while the previous one is within ``max_gap`` before it (its own next pose may
-  still come: one pose stamped far ahead does not make later frames misses; the caller waits a little);
+* ``("wait", None)``: no pose at or after the timestamp yet, or none within ``max_gap`` after it
+  (a pose far ahead counts as not come yet: the frame's own next pose may still come, so one pose
+  stamped far ahead does not make later frames misses; the caller waits a little);
 * ``("miss", reason)``: the poses around it are too far apart in time, or imply a motion faster
   than ``max_speed`` (one of them is an outlier: the frame is refused, the buffer is not changed,
   so one bad pose affects only the frames stamped next to it and ages out with the buffer), or
@@ -73,8 +73,8 @@ class PoseBuffer:
                 return "miss", f"frame is older than every buffered pose ({(self._t[0] - timestamp_ns) / 1e6:.1f} ms)"
             t0, t1 = self._t[i - 1], self._t[i]
             a, b = self._poses[i - 1], self._poses[i]
-        if t1 - t0 > self.max_gap_ns and timestamp_ns - t0 <= self.max_gap_ns:
-            return "wait", None  # the pose after the frame may still come (the one buffered is far ahead)
+        if t1 - timestamp_ns > self.max_gap_ns:
+            return "wait", None  # the next pose is far ahead: the frame's own may still come, as after the last
         if t1 - t0 > self.max_gap_ns:
             return (
                 "miss",
