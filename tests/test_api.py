@@ -143,6 +143,27 @@ def test_saved_map_loads_with_its_own_settings(small_mapper, tmp_path):
         Mapper.load(tmp_path / "junk.h3ckpt")
 
 
+def test_the_service_refuses_a_map_saved_under_other_settings(small_mapper, tmp_path):
+    """Issue [4/5] 6: ``load`` and ``--resume`` took a map saved under another profile and answered
+    ok; the map changed silently. Now the checkpoint loader names the settings that differ."""
+    from h3edge.mapping.map_file import settings_differences
+    from h3edge.profiling.timing import Timings
+    from h3edge.serving.checkpointing import Checkpointer
+
+    m, frames = small_mapper
+    m.save(tmp_path / "map.h3ckpt", map_id="m")
+    same = Checkpointer(tmp_path, "m", "lean", m.settings, Timings(), lambda c, t: None)
+    assert same.read_mapper(tmp_path / "map.h3ckpt")[0].frames_mapped == m.frames_mapped
+    on_cuda = dataclasses.replace(m.settings, mapper=dataclasses.replace(m.settings.mapper, device="cuda"))
+    assert settings_differences(m.settings, on_cuda) == []  # where it runs is no difference
+    other = dataclasses.replace(m.settings, voxels=dataclasses.replace(m.settings.voxels, truncation=0.08))
+    ckpt = Checkpointer(tmp_path, "m", "x86-cpu", other, Timings(), lambda c, t: None)
+    with pytest.raises(CheckpointError, match=r"voxels.truncation: 0.05 -> 0.08"):
+        ckpt.read_mapper(tmp_path / "map.h3ckpt")
+    with pytest.raises(CheckpointError, match="cannot resume"):
+        ckpt.resume()
+
+
 def test_profile_errors_name_the_key(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[voxels]\nvoxel_sise = 0.1\n")

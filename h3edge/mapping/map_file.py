@@ -174,6 +174,24 @@ def saved_settings(header: dict, path: Path) -> MapSettings:
     return map_settings_from_saved(saved, f"{path}: settings")
 
 
+def settings_differences(saved: MapSettings, wanted: MapSettings, ignore: tuple[str, ...] = ("mapper.device",)
+                         ) -> list[str]:
+    """``"section.key: saved -> wanted"`` for every mapping setting that differs (nested tables
+    dotted further), but those in ``ignore`` (where the map runs is not what it is)."""
+    out: list[str] = []
+
+    def walk(a, b, prefix: str) -> None:
+        for f in dataclasses.fields(a):
+            x, y, name = getattr(a, f.name), getattr(b, f.name), f"{prefix}{f.name}"
+            if dataclasses.is_dataclass(x):
+                walk(x, y, name + ".")
+            elif x != y and name not in ignore and not (isinstance(x, float) and x != x and y != y):
+                out.append(f"{name}: {x!r} -> {y!r}")
+
+    walk(saved, wanted, "")
+    return out
+
+
 def read_map(path: Path, settings: MapSettings | None = None) -> tuple[MapEngine, dict]:
     """(the mapper saved in ``path``, the file's header). ``settings``: the ones to run it with
     (the same sections and sizes as it was saved with); default: the file's own. CheckpointError

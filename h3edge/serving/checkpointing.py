@@ -31,6 +31,8 @@ from h3edge.mapping.map_file import (
     previous_path,
     read_header,
     remove_leftovers,
+    saved_settings,
+    settings_differences,
     write_checkpoint,
 )
 from h3edge.profiling.timing import Timings
@@ -67,11 +69,19 @@ class Checkpointer:
 
     # ----------------------------------------------------------------- reading
     def read_mapper(self, path: Path) -> tuple[Mapper, dict]:
-        """The map saved in ``path`` (with this service's settings) and the file's header;
-        CheckpointError / ValueError / KeyError when it cannot be used for this map."""
+        """The map saved in ``path`` and the file's header; CheckpointError / ValueError / KeyError
+        when it cannot be used for this map: another map id, or mapping settings other than this
+        service's (loaded under other settings the map would change silently: its distances move)."""
         header, _ = read_header(path)
         if header.get("map_id") != self.map_id:
             raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.map_id!r}")
+        diff = settings_differences(saved_settings(header, path), self.settings)
+        if diff:
+            shown = "; ".join(diff[:6]) + (f"; and {len(diff) - 6} more" if len(diff) > 6 else "")
+            profile = str(header.get("profile", "?"))[:64]
+            raise CheckpointError(f"checkpoint was saved under other mapping settings (profile {profile!r}): "
+                                  f"{shown}. Serve it with the profile it was saved with, or move the file away "
+                                  "to start a new map")
         return Mapper.load(path, self.settings), header
 
     def resume(self) -> tuple[Mapper | None, dict | None]:
