@@ -248,6 +248,23 @@ def test_far_away_and_overflowing_queries_are_refused_and_the_query_worker_lives
     assert reply  # the heavy-query worker still answers
 
 
+def test_sdf_payloads_are_read_as_their_encoding_says(hostile):
+    """Issue [4/5] 10: raw float32 points whose first byte is ``{`` were parsed as JSON and refused;
+    points given as strings or as 6 numbers were accepted."""
+    hostile["robot"].good_frames_map()
+    s = hostile["robot"].session
+    pts = np.array([[1.0000147, 0.5, 0.5], [0.2, 0.3, 0.4]], "<f4")
+    raw = pts.tobytes()
+    assert raw[:1] == b"{"
+    assert len(np.load(io.BytesIO(query(s, KEYS.sdf, raw, timeout=30)))["sdf"]) == 2  # octet-stream, as sent
+    plain = [r for r in s.get(KEYS.sdf, payload=raw, timeout=30)]  # no encoding given: not JSON, so points
+    assert len(plain) == 1 and plain[0].ok is not None
+    for bad in ({"points": [["1", "2", "3"]]}, {"points": [[1, 2, 3, 4, 5, 6]]}, {"points": [1, 2, 3, 4, 5, 6]},
+                {"points": [[True, 0, 0]]}, {"points": [[10 ** 400, 0, 0]]}):
+        with pytest.raises(RemoteError, match="sdf points"):
+            query(s, KEYS.sdf, bad, timeout=30)
+
+
 def test_frames_of_no_pinhole_camera_are_counted_drops(hostile):
     """Issue [4/5] 8: fx = 1e-300, fx = 1e-6 or cx = 1e300 were internal errors; now malformed
     frames, and good frames map after them."""

@@ -396,10 +396,14 @@ def test_checkpoint_fallback_leftovers_and_failed_final_checkpoint(tmp_path, tin
     )
     ckpt.write_bytes(ckpt.read_bytes()[:1000])  # the newest truncated
     (ckpt.parent / "map.h3ckpt.tmp").write_bytes(b"x" * 100)
+    for folder in ("maps", "exports"):  # a named save or an export killed midway (issue [4/5] 11)
+        (ckpt.parent / folder).mkdir(exist_ok=True)
+        (ckpt.parent / folder / "named.h3ckpt.tmp").write_bytes(b"x" * 100)
     again = MapService(settings, cfg, resume=True)
     assert again.resumed_from["fallback"] and again.mapper.frames_mapped == 1
     assert again.status()["last_error"]["code"] == "checkpoint_fallback"
     assert not (ckpt.parent / "map.h3ckpt.tmp").exists()
+    assert not list(ckpt.parent.glob("*/*.tmp"))
     previous_path(ckpt).write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match="cannot resume"):
         MapService(settings, cfg, resume=True)

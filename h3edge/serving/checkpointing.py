@@ -61,8 +61,9 @@ class Checkpointer:
         self.map_id, self.profile_name, self.settings = map_id, profile_name, settings
         self.timings, self.on_error, self.after_write = timings, on_error, after_write
         check_writable(self.run_dir)
-        for f in remove_leftovers(self.run_dir):
-            log.warning("removed %s, left by a checkpoint write that did not finish", f)
+        for folder in (self.run_dir, self.run_dir / SAVED_MAPS_DIR, self.run_dir / EXPORTS_DIR):
+            for f in remove_leftovers(folder):
+                log.warning("removed %s, left by a write that did not finish", f)
         self.last: dict | None = None  # the newest write that landed
         self.last_time = time.monotonic()
         self._writer: threading.Thread | None = None

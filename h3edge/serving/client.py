@@ -33,7 +33,9 @@ def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None,
     on an error reply, TimeoutError on none."""
     selector = f"{key}?{params}" if params else key
     body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
-    for reply in session.get(selector, payload=body, timeout=timeout):
+    encoding = None if body is None else (zenoh.Encoding.APPLICATION_OCTET_STREAM if isinstance(payload, bytes)
+                                          else zenoh.Encoding.APPLICATION_JSON)
+    for reply in session.get(selector, payload=body, encoding=encoding, timeout=timeout):
         if reply.ok is not None:
             return reply.ok.payload.to_bytes()
         raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))

@@ -128,10 +128,12 @@ class SdfRequest:
             raw = req.get("points")
             if not isinstance(raw, list) or len(raw) > max_points:
                 raise QueryError(f'sdf request needs "points": a list of at most {max_points} [x, y, z]')
+            if not all(isinstance(p, list) and len(p) == 3 and all(type(v) in (int, float) for v in p) for p in raw):
+                raise QueryError("sdf points must be [x, y, z] triples of numbers (not strings, not flat lists)")
             try:
                 pts = np.asarray(raw, np.float64).reshape(-1, 3) if raw else np.zeros((0, 3))
-            except (ValueError, TypeError):
-                raise QueryError("sdf points must be [x, y, z] numbers") from None
+            except OverflowError:  # a JSON integer of hundreds of digits
+                raise QueryError("sdf points must be finite coordinates within 1000 km") from None
         if len(pts) == 0:
             raise QueryError("sdf request has no points")
         if not np.isfinite(pts).all() or np.abs(pts).max() > 1e6:

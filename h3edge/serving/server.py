@@ -115,12 +115,13 @@ class ZenohServer:
 
     @staticmethod
     def _request(query, binary: bool = False) -> dict:
+        # binary: the caller decided the payload is not JSON (sdf's raw points) and reads it itself
         """The query's JSON payload merged with its selector parameters; with ``binary``, a payload
         that is not a JSON object is left for the caller (``query.payload``)."""
         out: dict = {}
         if query.payload is not None:
             raw = query.payload.to_bytes()
-            if raw and not (binary and raw.lstrip()[:1] != b"{"):
+            if raw and not binary:
                 try:
                     out = json.loads(raw)
                 except (ValueError, RecursionError) as e:  # bad UTF-8 or JSON, huge integers, deep nesting
@@ -148,8 +149,8 @@ class ZenohServer:
 
     def _sdf(self, query):
         raw = query.payload.to_bytes() if query.payload is not None else b""
-        binary = bool(raw) and raw.lstrip()[:1] != b"{"
-        req = SdfRequest.parse(self._request(query, binary=True), raw if binary else None,
+        binary = bool(raw) and _raw_points(raw, query.encoding)
+        req = SdfRequest.parse(self._request(query, binary=binary), raw if binary else None,
                                self.service.cfg.max_query_points)
         out = self.service.signed_distance(req)
         arrays = {"sdf": out.sdf, "state": out.state}
@@ -196,6 +197,22 @@ class ZenohServer:
                 pass
         for t in self._workers:
             t.join(5)
+
+
+def _raw_points(payload: bytes, encoding) -> bool:
+    """Whether an sdf query's payload is raw float32 points rather than a JSON request: as its
+    encoding says (the client sets octet-stream or JSON); without one, JSON only when it parses as a
+    JSON object (raw points may begin with the byte ``{``)."""
+    if encoding == zenoh.Encoding.APPLICATION_OCTET_STREAM:
+        return True
+    if encoding == zenoh.Encoding.APPLICATION_JSON:
+        return False
+    if payload.lstrip()[:1] != b"{":
+        return True
+    try:
+        return not isinstance(json.loads(payload), dict)
+    except (ValueError, RecursionError):
+        return True
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
