@@ -19,6 +19,7 @@ from h3edge.io.protocol import FrameMessage, Keys, PoseMessage, encode_frame, en
 from h3edge.io.replica import ReplicaSequence
 from h3edge.io.zenoh_session import open_session
 from h3edge.serving.client import RemoteError, query, wait_for_service
+from h3edge.serving.service import ServiceConfig
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
 KEYS = Keys.for_map("hostile")
@@ -79,7 +80,7 @@ def hostile(tiny_scene, tmp_path_factory):
     svc = ServiceProcess(PROFILE, state, "hostile", state / "service.log")
     svc.wait_listening()
     robot = Robot(svc, seq)
-    yield {"svc": svc, "robot": robot, "state": state, "seq": seq}
+    yield {"svc": svc, "robot": robot, "state": state, "seq": seq, "save_interval_s": ServiceConfig().save_min_interval_s + 0.5}
     robot.close()
     if svc.proc.poll() is None:
         svc.stop()
@@ -284,6 +285,37 @@ def test_frames_of_no_pinhole_camera_are_counted_drops(hostile):
     after = robot.settle(before["frames"]["received"] + len(bad))
     assert _dropped(before, after, "malformed") == len(bad), after["dropped"]
     assert "internal_error" not in after["dropped"]
+    robot.good_frames_map()
+
+
+def test_a_load_while_frames_stream_keeps_every_frame_counted(hostile):
+    """Issue [4/5] 9: frames in flight while a ``load`` swapped the map went missing from the
+    counters (received 388, mapped + dropped 386)."""
+    import threading
+
+    robot = hostile["robot"]
+    robot.good_frames_map()
+    query(robot.session, KEYS.save, {"name": "swap"}, timeout=60)
+    loads = []
+
+    def load_midway():
+        time.sleep(0.5)
+        try:
+            loads.append(json.loads(query(robot.session, KEYS.load, {"name": "swap"}, timeout=60)))
+        except Exception as e:  # noqa: BLE001 - reported by the assert below
+            loads.append(repr(e))
+
+    time.sleep(hostile["save_interval_s"])  # saves and loads are rate-limited
+    before = robot.status()
+    loader = threading.Thread(target=load_midway)
+    loader.start()
+    for _ in range(20):
+        robot.put_frame(robot.good_frame()[0])
+        time.sleep(0.08)
+    loader.join()
+    after = robot.settle(before["frames"]["received"] + 20)
+    assert len(loads) == 1 and isinstance(loads[0], dict), loads
+    assert after["frames"]["mapped"] + after["frames"]["dropped"] == after["frames"]["received"], after
     robot.good_frames_map()
 
 

@@ -35,10 +35,15 @@ def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None,
     body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
     encoding = None if body is None else (zenoh.Encoding.APPLICATION_OCTET_STREAM if isinstance(payload, bytes)
                                           else zenoh.Encoding.APPLICATION_JSON)
+    start = time.monotonic()
     for reply in session.get(selector, payload=body, encoding=encoding, timeout=timeout):
         if reply.ok is not None:
             return reply.ok.payload.to_bytes()
         raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
+    waited = time.monotonic() - start
+    if waited < 0.5 * timeout:  # the network answered "nobody" at once: not a slow service
+        raise TimeoutError(f"no reply from {selector}: the query ended after {waited:.1f} s with no answer (no "
+                           "service serves this key, or an access-control rule of the network denies it)")
     raise TimeoutError(f"no reply from {selector} within {timeout:.0f} s (is the service running?)")
 
 
