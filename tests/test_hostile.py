@@ -80,7 +80,8 @@ def hostile(tiny_scene, tmp_path_factory):
     svc = ServiceProcess(PROFILE, state, "hostile", state / "service.log")
     svc.wait_listening()
     robot = Robot(svc, seq)
-    yield {"svc": svc, "robot": robot, "state": state, "seq": seq, "save_interval_s": ServiceConfig().save_min_interval_s + 0.5}
+    yield {"svc": svc, "robot": robot, "state": state, "seq": seq,
+           "save_interval_s": ServiceConfig().save_min_interval_s + 0.5}
     robot.close()
     if svc.proc.poll() is None:
         svc.stop()
