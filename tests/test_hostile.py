@@ -320,10 +320,29 @@ def test_a_load_while_frames_stream_keeps_every_frame_counted(hostile):
     robot.good_frames_map()
 
 
+def test_saves_and_exports_are_rate_limited_and_bounded_in_number(hostile):
+    """Issue [4/5] 7: named saves under ever new names filled the disk (29 GB an hour) and 20
+    concurrent exports filled the heavy-query queue. Now an export is rate-limited like a save, and a
+    new name past ``max_named_files`` is refused while an existing one may be written over."""
+    robot, state = hostile["robot"], hostile["state"]
+    exports = state / "hostile" / "exports"
+    exports.mkdir(parents=True, exist_ok=True)
+    for k in range(ServiceConfig().max_named_files):  # the folder already full
+        (exports / f"old{k}.ply").write_bytes(b"ply")
+    with pytest.raises(RemoteError, match="max_named_files"):
+        query(robot.session, KEYS.export, {"name": "one-more"}, timeout=60)
+    first = json.loads(query(robot.session, KEYS.export, {"name": "old0"}, timeout=120))  # over an existing name
+    assert first["bytes"] > 3
+    with pytest.raises(RemoteError, match="at most one per"):
+        query(robot.session, KEYS.export, {"name": "old1"}, timeout=60)
+    robot.good_frames_map()
+
+
 def test_nothing_poisoned_survives_a_restart(hostile):
     """After every case above: save, SIGTERM, --resume, and good frames map on."""
     robot, svc, state = hostile["robot"], hostile["svc"], hostile["state"]
     mapped = robot.status()["map"]["frames_mapped"]
+    time.sleep(hostile["save_interval_s"])  # after the load above: saves and loads are rate-limited
     query(robot.session, KEYS.save, timeout=60)
     robot.close()
     assert svc.stop() == 0

@@ -164,6 +164,16 @@ class Checkpointer:
             self._writer.join(timeout)
 
     # ------------------------------------------------------- named saves / loads
+    @staticmethod
+    def check_room(path: Path, limit: int) -> None:
+        """QueryError when ``path`` is a new name and its folder already holds ``limit`` files of its
+        kind (scratch files not counted); writing over an existing name is always allowed."""
+        if path.exists() or not path.parent.is_dir():
+            return
+        kept = sum(1 for f in path.parent.iterdir() if f.suffix == path.suffix)
+        if kept >= limit:
+            raise QueryError(f"{path.parent.name}/ holds {kept} {path.suffix} files, the most this service keeps "
+                             f"(max_named_files): save over an existing name, or delete some")
     def named_path(self, name: str, folder: str = SAVED_MAPS_DIR, suffix: str = ".h3ckpt") -> Path:
         """``<run_dir>/<folder>/<name><suffix>`` for a plain file name (letters, digits, ``_ . -``, at
         most 64, no path separators); QueryError for anything else."""

@@ -105,6 +105,9 @@ class ServiceConfig:
     """longest a query waits for the mapper thread's map copy"""
     query_deadline_s: float = 30.0
     """a heavy query (mesh, render, save) still queued after this long gets a deadline error reply"""
+    max_named_files: int = 32
+    """named saves (maps/) and exports (exports/) kept at most, each: a save or export under a new name beyond it is
+    refused (a name already there is overwritten), so that requests cannot fill the disk"""
     save_min_interval_s: float = 10.0
     """save requests closer together than this are refused"""
     live_interval_s: float = 1.0
@@ -174,7 +177,7 @@ class MapService:
         self._save_requests: list[tuple[Future, Path | None]] = []
         self._load_requests: list[tuple[Future, Path]] = []
         self._req_lock = threading.Lock()
-        self._last_save_request: float | None = None
+        self._last_write_request: dict[str, float] = {}  # "save" (saves and loads), "export": when last asked
         self._view: MapSnapshot | None = None
         self._view_time = 0.0
         self._drops = collections.Counter()  # service-level frame drop reasons
@@ -465,19 +468,24 @@ class MapService:
         """Checkpoint now: the resume checkpoint, or ``<state>/<map>/maps/<name>.h3ckpt`` (which
         ``load`` reads back). At most one save per ``save_min_interval_s`` (QueryError otherwise)."""
         path = self.checkpoints.named_path(request.name) if request.name else None
+        if path is not None:
+            self.checkpoints.check_room(path, self.cfg.max_named_files)
         self._admit_save("save")
         return self._ask(self._save_requests, path)
 
     def _admit_save(self, what: str) -> None:
-        """Count a save or load against ``save_min_interval_s``; QueryError when one came too soon."""
+        """Count a save or load (one budget), or an export (another), against ``save_min_interval_s``;
+        QueryError when one came too soon."""
         now = time.monotonic()
         gap = self.cfg.save_min_interval_s
+        kind = "export" if what == "export" else "save"
         with self._req_lock:
-            last = self._last_save_request
+            last = self._last_write_request.get(kind)
             if last is not None and now - last < gap:
-                raise QueryError(f"{what} refused: the last save / load was asked {now - last:.1f} s ago; at most "
-                                 f"one per {gap:g} s (retry after {gap - (now - last):.1f} s)")
-            self._last_save_request = now
+                asked = "export" if kind == "export" else "save / load"
+                raise QueryError(f"{what} refused: the last {asked} was asked {now - last:.1f} s ago; "
+                                 f"at most one per {gap:g} s (retry after {gap - (now - last):.1f} s)")
+            self._last_write_request[kind] = now
 
     def load(self, request: NamedRequest) -> dict:
         """Replace the running map with a saved one (``name``: ``maps/<name>.h3ckpt``; none: the
@@ -490,8 +498,11 @@ class MapService:
         return self._ask(self._load_requests, path)
 
     def export_mesh(self, request: NamedRequest) -> dict:
-        """Write the whole map's mesh to ``<state>/<map>/exports/<name>.<format>``; its path and size."""
+        """Write the whole map's mesh to ``<state>/<map>/exports/<name>.<format>``; its path and size.
+        Counted like a save against ``save_min_interval_s`` and ``max_named_files``."""
         path = self.checkpoints.named_path(request.name, EXPORTS_DIR, "." + request.format)
+        self.checkpoints.check_room(path, self.cfg.max_named_files)
+        self._admit_save("export")
         data = self.mesh(MeshRequest(request.format, self.settings.mapper.mesh_resolution, None))
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
