@@ -49,3 +49,21 @@ def test_the_counter_sees_a_transfer_in_h3edge_code_and_ignores_others():
     assert ht.syncs_by_function() == {"h3edge/mapping/trainer.py:_put_back": 1}  # the mask, not the slice
     assert set(ht.by_line()) == {"h3edge/mapping/trainer.py:2 cpu", "h3edge/mapping/trainer.py:2 float"}
     assert torch.Tensor.cpu is original and torch.nonzero is original_nonzero  # the patches are undone
+
+
+def test_the_cuda_check_runs_where_no_gpu_is(tmp_path):
+    """``benchmarks/cuda_check.py`` (the first thing to run on a lent GPU) runs end to end with the
+    CPU in CUDA's place: the Orin profile on the torch backend, its step's one host transfer, the
+    timings, the memory plan and the bounds, in its JSON."""
+    import json
+
+    from benchmarks import cuda_check
+
+    code = cuda_check.main(["--device", "cpu", "--frames", "3", "--cpu-frames", "0", "--out", str(tmp_path),
+                            "--set", "mapper.rays_per_iteration=256", "--set", "votes.points=256",
+                            "--set", "field.geo_log2_table=12", "--set", "field.tex_log2_table=12"])
+    res = json.loads((tmp_path / "cuda_check.json").read_text())
+    assert code in (0, 1) and res["ok"] == (code == 0)
+    run = res["cuda_run"]
+    assert run["device"] == "cpu" and run["step_host_transfers_max"] == 1 and res["bounds"]["one_host_transfer_a_step"]
+    assert {"integration", "idle_training"} <= set(run["timings_ms"]) and run["plan_mb"] > 0
