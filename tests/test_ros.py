@@ -372,3 +372,15 @@ def test_serve_with_ros_refuses_to_start_without_an_extrinsic(tmp_path, capsys):
     rc = main(["serve", "--profile", str(PROFILE), "--state-dir", str(tmp_path), "--ros", "--listen",
                "tcp/127.0.0.1:0", "--no-multicast"])
     assert rc == 2 and "base_to_camera" in capsys.readouterr().err
+
+
+def test_camera_info_with_ros1_field_names_is_read():
+    """Issue [4/5] 13: a camera info from a ROS 1 bag (or converted from one) names its matrices
+    ``K`` and ``D``; the reader crashed with an AttributeError on ``msg.k``."""
+    from types import SimpleNamespace
+
+    info = SimpleNamespace(K=[613.0, 0.0, 320.0, 0.0, 613.0, 240.0, 0.0, 0.0, 1.0], D=[0.0] * 5, width=640, height=480,
+                           distortion_model="plumb_bob")
+    assert ros.camera_intrinsics(info) == Intrinsics(640, 480, 613.0, 613.0, 320.0, 240.0)
+    with pytest.raises(ros.RosMessageError, match="k is not 9"):
+        ros.camera_intrinsics(SimpleNamespace(width=640, height=480, distortion_model=""))

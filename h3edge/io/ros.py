@@ -160,11 +160,12 @@ def depth_message(depth_m: np.ndarray, stamp: int, frame_id: str, encoding: str 
 
 # ------------------------------------------------------------------ camera info
 def camera_intrinsics(msg) -> Intrinsics:
-    """Pinhole intrinsics of a ``sensor_msgs/CameraInfo`` (its ``k``)."""
-    k = np.asarray(msg.k, np.float64)
+    """Pinhole intrinsics of a ``sensor_msgs/CameraInfo`` (its ``k``; ROS 1's, as a ROS 1 bag or
+    one converted from it keeps it, ``K`` and ``D``)."""
+    k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), np.float64)
     if k.shape != (9,) or not np.isfinite(k).all():
         raise RosMessageError("camera info: k is not 9 finite numbers")
-    d = np.asarray(msg.d, np.float64)
+    d = np.asarray(getattr(msg, "d", getattr(msg, "D", ())), np.float64)
     if len(d) and (not np.isfinite(d).all() or np.abs(d).max() > 1e-9):
         raise RosMessageError(f"camera info: {msg.distortion_model or 'distortion'} coefficients are not zero; "
                               "subscribe to the rectified image (image_rect) and its camera info")
