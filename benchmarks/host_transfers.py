@@ -40,6 +40,7 @@ def count_transfers(settings: MapSettings, frames: list) -> dict:
     per-frame and per-step totals (after the first two frames: the map's first keyframe and field
     set-up are not the steady state), and the steady steps' counts by function and by line."""
     m = MapEngine(settings)
+    m.voxels.compact_lookup = False  # the GPU's fixed-shape lookup, not the CPU's compaction
     per_frame, per_step, step_syncs = [], [], []
     functions: dict[str, list[int]] = {}
     sync_functions: dict[str, list[int]] = {}

@@ -177,8 +177,9 @@ def test_locate_follows_its_rule_on_faces_edges_and_corners():
     vox, frac = vm.locate(pts)
     assert np.array_equal(vox, _locate_reference(vm, pts))
     # the torch lookup the torch backend trains with (on the map's device): the same voxels and positions
-    t_vox, t_frac = vm.locate_tensor(torch.from_numpy(pts))
-    assert np.array_equal(t_vox.numpy(), vox) and np.allclose(t_frac.numpy(), frac, atol=1e-6)
+    for compact in (True, False):  # the CPU's compaction and the GPU's fixed shapes
+        t_vox, t_frac = vm.locate_tensor(torch.from_numpy(pts), compact=compact)
+        assert np.array_equal(t_vox.numpy(), vox) and np.allclose(t_frac.numpy(), frac, atol=1e-6)
     bad = torch.tensor([[np.nan, 0.0, 0.0], [np.inf, 1.0, 1.0], [1e9, 0.0, 0.0]])
     assert (vm.locate_tensor(bad)[0] == -1).all()  # NaN, infinite and unpackable points are outside
     assert (VoxelMap(vm.cfg).locate_tensor(torch.from_numpy(pts))[0] == -1).all()  # an empty map

@@ -177,6 +177,9 @@ class VoxelMap:
         # the lookup training uses: True on the torch backend (the index on the map's device,
         # :meth:`locate_tensor`), False on the numba backend (:meth:`locate`, on the host); set by the engine
         self.device_lookup = False
+        # locate_tensor's default: compact the points on a face (True), or fixed shapes (False);
+        # None: by device (compact on the CPU). Counting a GPU's syncs on a CPU sets False.
+        self.compact_lookup: bool | None = None
         self._device_index: tuple[np.ndarray, np.ndarray, DeviceIndex] | None = None  # (keys, corners, index)
 
     def __len__(self) -> int:
@@ -390,11 +393,14 @@ class VoxelMap:
         return (torch.from_numpy(vox).to(points.device),
                 torch.from_numpy(frac.astype(np.float32)).to(points.device))
 
-    def locate_tensor(self, points: torch.Tensor, eps: float = 1e-5) -> tuple[torch.Tensor, torch.Tensor]:
+    def locate_tensor(self, points: torch.Tensor, eps: float = 1e-5, compact: bool | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`locate`'s rule in torch on ``points``' device (N, 3) metres: voxel ids (N,) int64
         (-1 outside) and positions in the voxel (N, 3) float32 in [0, 1]. The sorted key index on the
         device answers with ``searchsorted``; a point on a face tries the up to 7 voxels across the
-        faces it lies on, all in fixed-shape tensor operations (no host transfer, no sync)."""
+        faces it lies on, all in fixed-shape tensor operations (no host transfer, no sync); ``compact``
+        (default: ``compact_lookup``, else on the CPU, where there is no device to stall) tries them
+        only for the points on a face of a missing voxel."""
         index = self.device_index(points.device)
         p = points.detach().to(torch.float64).reshape(-1, 3) / self.cfg.voxel_size
         finite = torch.isfinite(p).all(1)
@@ -404,13 +410,13 @@ class VoxelMap:
         if len(index.sorted_keys):
             a = torch.round(p)
             on = (p - a).abs() < eps
-            for c in range(8):  # the first allocated voxel across the faces the point lies on (cell_of's order)
-                bits = torch.from_numpy(CORNERS[c].astype(bool)).to(p.device)
-                cand = torch.where(on, torch.where(bits, a, a - 1), g)
-                take = (vox < 0) & ~(bits & ~on).any(1)
-                found = index.find(cand)
-                take &= found >= 0
-                vox, corner = torch.where(take, found, vox), torch.where(take[:, None], cand, corner)
+            compact = self.compact_lookup if compact is None else compact
+            if p.device.type == "cpu" if compact is None else compact:
+                sub = torch.nonzero((vox < 0) & on.any(1)).squeeze(1)
+                v, c = _across_faces(index, g[sub], a[sub], on[sub], vox[sub], g[sub])
+                vox, corner = vox.index_copy(0, sub, v), corner.index_copy(0, sub, c)
+            else:  # fixed shapes: every point tries the candidates (no sync)
+                vox, corner = _across_faces(index, g, a, on, vox, corner)
         vox = torch.where(finite, vox, torch.full_like(vox, -1))
         frac = (p - corner).clamp(0.0, 1.0).to(torch.float32)
         return vox, frac
@@ -467,6 +473,20 @@ def _build_table(voxel_keys: np.ndarray) -> VoxelTable:
     k.build_table(np.ascontiguousarray(voxel_keys, np.int64), hkeys, hids)
     ijk = unpack(voxel_keys)
     return VoxelTable(hkeys, hids, ijk.min(0).astype(np.int64), ijk.max(0).astype(np.int64) + 1)
+
+
+def _across_faces(index: DeviceIndex, g: torch.Tensor, a: torch.Tensor, on: torch.Tensor, vox: torch.Tensor,
+                  corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where ``vox`` < 0: the first allocated voxel across the faces each point lies on (``on``, per
+    axis; ``g`` its floor cell, ``a`` its rounded coordinates), in :func:`cell_of`'s order, and that
+    voxel's corner; the others unchanged."""
+    for c in range(8):
+        bits = torch.from_numpy(CORNERS[c].astype(bool)).to(g.device)
+        cand = torch.where(on, torch.where(bits, a, a - 1), g)
+        found = index.find(cand)
+        take = (vox < 0) & ~(bits & ~on).any(1) & (found >= 0)
+        vox, corner = torch.where(take, found, vox), torch.where(take[:, None], cand, corner)
+    return vox, corner
 
 
 @dataclass(frozen=True)
