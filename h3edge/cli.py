@@ -9,7 +9,7 @@
     h3edge serve --profile P [--zenoh-config F] [--map-id ID] [--state-dir DIR] [--resume]
                  [--ros --base-to-camera "x y z qx qy qz qw" --ros-keys bridge|rmw_zenoh --color-topic T ...]
     h3edge sim publish SEQUENCE --rate HZ [--pose-rate HZ --jitter MS --frames N --embed-pose]
-    h3edge sim bag SEQUENCE OUT [--storage mcap|sqlite3 --base-to-camera ...]
+    h3edge sim bag SEQUENCE OUT [--storage mcap|sqlite3|ros1 --base-to-camera ...]
     h3edge view --save FILE.rrd | --spawn | --rerun-url URL [--duration S --render-every S]
     h3edge query status|profile|mesh|render|sdf|slice|save|load|export [--out FILE] [...]
     h3edge profile report RUN_DIR|zenoh:[MAP-ID] [--vs OTHER] [--format table|markdown|json]
@@ -461,7 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
     bg = sim.add_parser("bag", help="record a sequence as a rosbag2 (colour, depth, camera info, odometry)")
     bg.add_argument("sequence")
     bg.add_argument("out")
-    bg.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    bg.add_argument("--storage", choices=["mcap", "sqlite3", "ros1"], default="mcap",
+                    help="ROS 2 bag storage, or ros1: a ROS 1 .bag")
     bg.add_argument("--rate", type=float, default=30.0, help="frames per second of the recording")
     bg.add_argument("--frames", type=int, help="only the first N frames")
     _add_ros_args(bg)

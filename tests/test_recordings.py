@@ -19,11 +19,12 @@ from h3edge.io.sequence import DatasetError
 EXTRINSIC = "0.1 0.0 0.2 -0.5 0.5 -0.5 0.5"
 
 
-@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3", "ros1"])
 def test_a_rosbag_reads_back_as_the_sequence_it_recorded(tiny_scene, tmp_path, storage):
+    """ROS 2 bags and ROS 1 ``.bag`` files (issue [4/5] 13: read directly, ROS 1 field names)."""
     seq = ReplicaSequence(tiny_scene)
     cfg = RosConfig(base_to_camera=EXTRINSIC, world_frame="odom")
-    bag = write_rosbag(seq, tmp_path / f"bag_{storage}", cfg, storage, rate=15.0)
+    bag = write_rosbag(seq, tmp_path / f"bag_{storage}{'.bag' if storage == 'ros1' else ''}", cfg, storage, rate=15.0)
     back = open_sequence(bag, cfg)
     assert isinstance(back, RosbagSequence) and len(back) == len(seq) and not back.skipped
     for i in (0, len(seq) - 1):

@@ -32,7 +32,7 @@ MAX_POSE_GAP_S = 0.2  # a frame is interpolated only between poses at most this 
 
 def is_rosbag(path: Path) -> bool:
     p = Path(path)
-    return (p.is_dir() and (p / "metadata.yaml").is_file()) or p.suffix in (".mcap", ".db3")
+    return (p.is_dir() and (p / "metadata.yaml").is_file()) or p.suffix in (".mcap", ".db3", ".bag")
 
 
 def _reader(path: Path):
@@ -43,7 +43,7 @@ def _reader(path: Path):
         reader = AnyReader([p], default_typestore=ros.typestore())
         reader.open()
     except Exception as e:  # noqa: BLE001 - rosbags raises its own error types per format
-        raise DatasetError(f"{p}: cannot open as a rosbag2 recording ({type(e).__name__}: {e})") from None
+        raise DatasetError(f"{p}: cannot open as a ROS 1 or ROS 2 recording ({type(e).__name__}: {e})") from None
     return reader
 
 
@@ -171,30 +171,43 @@ class RosbagSequence(SequenceBase):
 def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", rate: float = 30.0,
                  start_ns: int = 1_700_000_000_000_000_000, frames: int | None = None) -> Path:
     """Record ``seq`` as a robot would publish it on ``cfg``'s topics (odometry of the base, whose
-    pose with ``cfg.base_to_camera`` is the camera's); ``storage``: ``mcap`` or ``sqlite3``."""
+    pose with ``cfg.base_to_camera`` is the camera's); ``storage``: ``mcap`` or ``sqlite3`` (ROS 2
+    bags), ``ros1`` (a ROS 1 ``.bag``: ROS 1 message definitions, ``K`` / ``D`` in the camera info)."""
+    from rosbags.rosbag1 import Writer as Ros1Writer
     from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
 
     out = Path(out)
     if out.exists():
         raise DatasetError(f"{out}: exists")
-    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
     inv = invert_pose(ros.extrinsic_matrix(cfg.base_to_camera))
     ts = ros.typestore()
     n = len(seq) if frames is None else min(frames, len(seq))
     cam = cfg.camera_frame or "camera_color_optical_frame"
-    with Writer(out, version=9, storage_plugin=plugin) as w:
-        conn = {"color": w.add_connection(cfg.color_topic, ros.IMAGE, typestore=ts),
-                "depth": w.add_connection(cfg.depth_topic, ros.IMAGE, typestore=ts),
-                "camera_info": w.add_connection(cfg.camera_info_topic, ros.CAMERA_INFO, typestore=ts),
-                "pose": w.add_connection(cfg.pose_topic, ros.ODOMETRY, typestore=ts)}
+    if storage == "ros1":
+        writer, conn_ts = Ros1Writer(out), get_typestore(Stores.ROS1_NOETIC)
+
+        def encode(msg, msgtype: str) -> bytes:  # the same fields in ROS 1's wire format
+            return ts.cdr_to_ros1(ros.serialize(msg), msgtype)
+    else:
+        plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
+        writer, conn_ts = Writer(out, version=9, storage_plugin=plugin), ts
+
+        def encode(msg, msgtype: str) -> bytes:
+            return ros.serialize(msg)
+    with writer as w:
+        conn = {"color": w.add_connection(cfg.color_topic, ros.IMAGE, typestore=conn_ts),
+                "depth": w.add_connection(cfg.depth_topic, ros.IMAGE, typestore=conn_ts),
+                "camera_info": w.add_connection(cfg.camera_info_topic, ros.CAMERA_INFO, typestore=conn_ts),
+                "pose": w.add_connection(cfg.pose_topic, ros.ODOMETRY, typestore=conn_ts)}
         for i in range(n):
             f = seq[i]
             t = start_ns + int(i * 1e9 / rate)
             base = f.pose @ inv
-            w.write(conn["pose"], t, ros.serialize(ros.odometry_message(base, t, cfg.world_frame or "odom",
-                                                                        cfg.base_frame)))
-            w.write(conn["camera_info"], t, ros.serialize(ros.camera_info_message(f.intrinsics, t, cam)))
-            w.write(conn["color"], t, ros.serialize(ros.color_message(f.color, t, cam, "bgr8")))
-            w.write(conn["depth"], t + 1000, ros.serialize(ros.depth_message(f.depth, t + 2_000_000, cam,
-                                                                             depth_scale=cfg.depth_scale)))
+            w.write(conn["pose"], t, encode(ros.odometry_message(base, t, cfg.world_frame or "odom", cfg.base_frame),
+                                            ros.ODOMETRY))
+            w.write(conn["camera_info"], t, encode(ros.camera_info_message(f.intrinsics, t, cam), ros.CAMERA_INFO))
+            w.write(conn["color"], t, encode(ros.color_message(f.color, t, cam, "bgr8"), ros.IMAGE))
+            w.write(conn["depth"], t + 1000, encode(ros.depth_message(f.depth, t + 2_000_000, cam,
+                                                                      depth_scale=cfg.depth_scale), ros.IMAGE))
     return out
