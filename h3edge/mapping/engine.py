@@ -748,7 +748,7 @@ class MapEngine:
                 "keyframes": kf_bytes,
                 "hash_grids_with_adam": grids,
                 # prior, its Adam moments, seen_behind; trained rays per voxel
-                "priors": len(self.voxels.vertex_keys) * 4 * 4 + self.voxels.trained.nbytes,
+                "priors": len(self.voxels.vertex_keys) * 4 * 4 + self.voxels.trained_nbytes,
                 "ray_tables": sum(r.nbytes for r in self._rays_cache.values()),
                 "texture_patterns": self.patterns.nbytes,
                 "free_space": self.free_space.nbytes,

@@ -275,11 +275,17 @@ class VoxelMap:
     def trained(self) -> np.ndarray:
         """(V,) float32 on the host: training rays counted in each voxel (by id). Reading it folds in
         the counts training steps added on the device since the last read (one device-to-host copy
-        a read, never one a step)."""
+        a read, never one a step); read it under the map's lock (a training step adds counts
+        under it)."""
         if self._trained_pending is not None:
             pending, self._trained_pending = self._trained_pending, None
             self._trained[:len(pending)] += pending.cpu().numpy()
         return self._trained
+
+    @property
+    def trained_nbytes(self) -> int:
+        """Bytes of the trained-ray counts, read without folding the device's (no lock needed)."""
+        return self._trained.nbytes
 
     @trained.setter
     def trained(self, value: np.ndarray) -> None:
