@@ -297,3 +297,9 @@ def test_trained_rays_count_per_voxel_grow_with_the_map_and_survive_state_dict()
         VoxelMap(vm.cfg).load_state_dict(meta, {**arrays, "trained": arrays["trained"][:-1]})
     vm._insert(np.array([pack(np.array([[900, 900, 900]]))[0]]))
     assert len(vm.trained) == n + 1 and vm.trained[-1] == 0
+    # the torch backend counts on its device (fixed shapes) and the host array takes them when read
+    vm.count_trained(torch.tensor([0, 1, 1, -1, n + 9]))
+    vm._insert(np.array([pack(np.array([[901, 900, 900]]))[0]]))  # a voxel added between two steps
+    vm.count_trained(torch.tensor([n + 1, 0]))
+    assert vm._trained_pending is not None and vm.trained_nbytes == 4 * (n + 2)
+    assert vm.trained[:3].tolist() == [4, 3, 0] and vm.trained[n + 1] == 1 and vm._trained_pending is None
