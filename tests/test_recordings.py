@@ -41,6 +41,22 @@ def test_a_rosbag_reads_back_as_the_sequence_it_recorded(tiny_scene, tmp_path, s
         open_sequence(bag, RosConfig(base_to_camera="identity", pose_topic="/tf"))
 
 
+def test_a_bag_of_depth_not_registered_to_colour_is_refused(tiny_scene, tmp_path):
+    """Issue [4/5] 14: a recording whose depth camera info differs from the colour camera's is refused
+    with the reason, never mapped misaligned; the same depth camera info as colour's reads."""
+    from h3edge.geometry.camera import Intrinsics
+
+    seq = ReplicaSequence(tiny_scene)
+    cfg = RosConfig(base_to_camera=EXTRINSIC)
+    i = seq[0].intrinsics
+    wide = Intrinsics(i.width, i.height, i.fx * 0.64, i.fy * 0.64, i.cx, i.cy)
+    bag = write_rosbag(seq, tmp_path / "unregistered.bag", cfg, "ros1", frames=3, depth_intrinsics=wide)
+    with pytest.raises(DatasetError, match="not registered to colour"):
+        open_sequence(bag, cfg)
+    ok = write_rosbag(seq, tmp_path / "registered.mcap", cfg, "mcap", frames=3, depth_intrinsics=i)
+    assert len(open_sequence(ok, cfg)) == 3
+
+
 def test_h3edge_map_maps_a_recorded_bag(tiny_scene, tmp_path):
     from h3edge.cli import main
 

@@ -204,6 +204,26 @@ def test_oversized_images_are_refused_before_they_are_decoded_or_buffered():
     assert "ros_internal_error" not in ing.drops
 
 
+def test_depth_not_registered_to_colour_is_refused_never_mapped_misaligned():
+    """Issue [4/5] 14: depth from its own camera (RealSense: depth fx 390, colour fx 613) was mapped as
+    if aligned whenever the images had the same size. With the depth camera's info on its topic,
+    such pairs are refused with the reason; registered depth (the same camera info) maps."""
+    ing, sink = _ingest()
+    color_intr = Intrinsics(8, 6, 6.13, 6.13, 4.0, 3.0)
+    on = {r: ing.handler(r) for r in ("color", "depth", "camera_info", "depth_camera_info")}
+    rgb, depth = np.full((6, 8, 3), 120, np.uint8), np.full((6, 8), 1.5, np.float32)
+    on["camera_info"](ros.serialize(ros.camera_info_message(color_intr, 0, "cam")))
+    on["depth_camera_info"](ros.serialize(ros.camera_info_message(Intrinsics(8, 6, 3.9, 3.9, 4.1, 3.0), 0, "d")))
+    on["color"](ros.serialize(ros.color_message(rgb, 10, "cam")))
+    on["depth"](ros.serialize(ros.depth_message(depth, 10, "cam")))
+    assert sink.frames == [] and ing.drops["ros_depth_not_registered"] == 1
+    on["depth_camera_info"](ros.serialize(ros.camera_info_message(color_intr, 0, "cam")))  # aligned depth
+    on["color"](ros.serialize(ros.color_message(rgb, 20, "cam")))
+    on["depth"](ros.serialize(ros.depth_message(depth, 20, "cam")))
+    assert len(sink.frames) == 1
+    assert "depth_camera_info" not in RosConfig(base_to_camera="identity", depth_camera_info_topic="").keys()
+
+
 def test_tf_messages_take_only_the_base_transform():
     ing, sink = _ingest(pose_type="tf", world_frame="odom")
     base = _pose(5)

@@ -289,6 +289,9 @@ class RosConfig:
     """depth registered to the colour camera"""
     camera_info_topic: str = "/camera/color/camera_info"
     """sensor_msgs/CameraInfo of the colour camera (the intrinsics)"""
+    depth_camera_info_topic: str = "/camera/aligned_depth_to_color/camera_info"
+    """sensor_msgs/CameraInfo of the depth images: when it differs from the colour camera's, depth is not registered to
+    colour and its frames are refused, never mapped misaligned ("": no check)"""
     pose_topic: str = "/odom"
     """the robot's pose topic (see pose_type)"""
     pose_type: str = "odometry"
@@ -322,8 +325,23 @@ class RosConfig:
         topics = {"color": (self.color_topic, IMAGE), "depth": (self.depth_topic, IMAGE),
                   "camera_info": (self.camera_info_topic, CAMERA_INFO),
                   "pose": (self.pose_topic, POSE_TYPES[self.pose_type])}
+        if self.depth_camera_info_topic:
+            topics["depth_camera_info"] = (self.depth_camera_info_topic, CAMERA_INFO)
         return {role: topic_key(t, mt, self.key_style, self.key_prefix, self.domain)
                 for role, (t, mt) in topics.items()}
+
+
+def registration_mismatch(color: Intrinsics, depth: Intrinsics) -> str | None:
+    """Why depth images with camera info ``depth`` are not registered to the colour camera
+    ``color`` (another size, focal length or principal point), or None when they are."""
+    if (depth.width, depth.height) != (color.width, color.height) or \
+            not np.allclose([depth.fx, depth.fy], [color.fx, color.fy], rtol=0.01) or \
+            not np.allclose([depth.cx, depth.cy], [color.cx, color.cy], atol=1.0):
+        return (f"depth is not registered to colour: depth camera {depth.width}x{depth.height} fx {depth.fx:.1f} "
+                f"cx {depth.cx:.1f}, colour camera {color.width}x{color.height} fx {color.fx:.1f} cx {color.cx:.1f}; "
+                "use depth aligned to colour (e.g. the driver's aligned_depth_to_color), or set "
+                "depth_camera_info_topic to \"\" if it is registered")
+    return None
 
 
 def extrinsic_matrix(spec: str) -> np.ndarray:

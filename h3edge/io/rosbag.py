@@ -64,6 +64,20 @@ class RosbagSequence(SequenceBase):
             raise DatasetError(f"{self.root}: topics {missing} not in the bag (it has {sorted(conns)})")
         self._conns = {role: conns[t] for role, t in want.items()}
         self._scan()
+        if cfg.depth_camera_info_topic in conns:  # depth from its own camera: refused unless registered to colour
+            self._check_registration(conns[cfg.depth_camera_info_topic])
+
+    def _check_registration(self, conn) -> None:
+        """DatasetError when the bag's depth camera info says its depth is not registered to colour."""
+        for _, _, raw in self._reader.messages(connections=[conn]):
+            try:
+                depth = ros.camera_intrinsics(self._reader.deserialize(raw, conn.msgtype))
+            except ros.RosMessageError as e:
+                raise DatasetError(f"{self.root}: {self.cfg.depth_camera_info_topic}: {e}") from None
+            why = ros.registration_mismatch(self.intrinsics, depth)
+            if why:
+                raise DatasetError(f"{self.root}: {why}")
+            return
 
     def _skip(self, why: str) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
@@ -169,10 +183,13 @@ class RosbagSequence(SequenceBase):
 
 
 def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", rate: float = 30.0,
-                 start_ns: int = 1_700_000_000_000_000_000, frames: int | None = None) -> Path:
+                 start_ns: int = 1_700_000_000_000_000_000, frames: int | None = None,
+                 depth_intrinsics: Intrinsics | None = None) -> Path:
     """Record ``seq`` as a robot would publish it on ``cfg``'s topics (odometry of the base, whose
     pose with ``cfg.base_to_camera`` is the camera's); ``storage``: ``mcap`` or ``sqlite3`` (ROS 2
-    bags), ``ros1`` (a ROS 1 ``.bag``: ROS 1 message definitions, ``K`` / ``D`` in the camera info)."""
+    bags), ``ros1`` (a ROS 1 ``.bag``: ROS 1 message definitions, ``K`` / ``D`` in the camera info).
+    ``depth_intrinsics``: also a depth camera info (on ``cfg.depth_camera_info_topic``) saying so,
+    as a driver recording unregistered depth does."""
     from rosbags.rosbag1 import Writer as Ros1Writer
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -200,6 +217,8 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
                 "depth": w.add_connection(cfg.depth_topic, ros.IMAGE, typestore=conn_ts),
                 "camera_info": w.add_connection(cfg.camera_info_topic, ros.CAMERA_INFO, typestore=conn_ts),
                 "pose": w.add_connection(cfg.pose_topic, ros.ODOMETRY, typestore=conn_ts)}
+        if depth_intrinsics is not None:
+            conn["depth_info"] = w.add_connection(cfg.depth_camera_info_topic, ros.CAMERA_INFO, typestore=conn_ts)
         for i in range(n):
             f = seq[i]
             t = start_ns + int(i * 1e9 / rate)
@@ -207,6 +226,9 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
             w.write(conn["pose"], t, encode(ros.odometry_message(base, t, cfg.world_frame or "odom", cfg.base_frame),
                                             ros.ODOMETRY))
             w.write(conn["camera_info"], t, encode(ros.camera_info_message(f.intrinsics, t, cam), ros.CAMERA_INFO))
+            if depth_intrinsics is not None:
+                w.write(conn["depth_info"], t, encode(ros.camera_info_message(depth_intrinsics, t, cam),
+                                                      ros.CAMERA_INFO))
             w.write(conn["color"], t, encode(ros.color_message(f.color, t, cam, "bgr8"), ros.IMAGE))
             w.write(conn["depth"], t + 1000, encode(ros.depth_message(f.depth, t + 2_000_000, cam,
                                                                       depth_scale=cfg.depth_scale), ros.IMAGE))

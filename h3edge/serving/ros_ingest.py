@@ -70,6 +70,7 @@ class RosIngest:
         self._colors: collections.deque[_Image] = collections.deque()
         self._depths: collections.deque[_Image] = collections.deque()
         self._infos: dict[tuple[int, int], Intrinsics] = {}
+        self._depth_info: Intrinsics | None = None  # the depth camera's, when its topic is published
         self._waiting: collections.deque[tuple[int, _Image, _Image]] = collections.deque()  # pairs without info
         self.received = collections.Counter()  # by role
         self.drops = collections.Counter()  # by reason
@@ -83,7 +84,7 @@ class RosIngest:
     def handler(self, role: str) -> Callable[[bytes], None]:
         """The callback for input ``role`` (a key of :meth:`RosConfig.keys`); never raises."""
         fn = {"color": self.on_color, "depth": self.on_depth, "camera_info": self.on_camera_info,
-              "pose": self.on_pose}[role]
+              "depth_camera_info": self.on_depth_camera_info, "pose": self.on_pose}[role]
 
         def call(data: bytes) -> None:
             self.received[role] += 1
@@ -143,6 +144,11 @@ class RosIngest:
             for frame_id, color, depth in ready:
                 self._send(frame_id, color, depth, intr)
 
+    def on_depth_camera_info(self, data: bytes) -> None:
+        intr = ros.camera_intrinsics(ros.deserialize(data, ros.CAMERA_INFO))
+        with self._lock:
+            self._depth_info = intr
+
     def _pair(self, img: _Image, mine: collections.deque, others: collections.deque, is_color: bool) -> None:
         with self._send_lock:
             self._pair_and_send(img, mine, others, is_color)
@@ -185,6 +191,11 @@ class RosIngest:
         self._send(frame_id, color, depth, intr)
 
     def _send(self, frame_id: int, color: _Image, depth: _Image, intr: Intrinsics) -> None:
+        depth_info = self._depth_info
+        why = ros.registration_mismatch(intr, depth_info) if depth_info is not None else None
+        if why:
+            self._drop("ros_depth_not_registered", why)
+            return
         msg = FrameMessage(color.stamp, frame_id, color.array, depth.array, intr, None, color.frame_id)
         with self._lock:
             self.frames += 1

@@ -115,6 +115,8 @@ def publish_ros_sequence(session: zenoh.Session, seq, cfg, rate: float = 30.0, p
             color = ros.serialize(ros.color_message(f.color, ts, cam, "bgr8"))
             depth = ros.serialize(ros.depth_message(f.depth, ts, cam, depth_scale=cfg.depth_scale))
         pubs["camera_info"].put(info)
+        if "depth_camera_info" in pubs:  # depth registered to colour: the same camera
+            pubs["depth_camera_info"].put(info)
         if n == 0:  # topics arrive on separate callbacks: the first images must not beat their camera info
             time.sleep(0.2)
         pubs["color"].put(color)
