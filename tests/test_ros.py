@@ -48,7 +48,7 @@ def test_mono_images_read_as_grey():
     assert msg.step == 5 and np.array_equal(ros.image_color(msg), grey)
 
 
-@pytest.mark.parametrize("encoding,tol", [("16UC1", 0.0005), ("32FC1", 0.0)])
+@pytest.mark.parametrize("encoding,tol", [("16UC1", 0.0005), ("mono16", 0.0005), ("32FC1", 0.0)])
 def test_depth_images_round_trip_in_metres(encoding, tol):
     depth = np.random.default_rng(1).random((5, 4)).astype(np.float32) * 4
     depth[0, 0] = 0.0
