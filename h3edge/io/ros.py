@@ -148,7 +148,8 @@ def color_message(rgb: np.ndarray, stamp: int, frame_id: str, encoding: str = "r
 
 def depth_message(depth_m: np.ndarray, stamp: int, frame_id: str, encoding: str = "16UC1",
                   depth_scale: float = 1000.0):
-    """A ``sensor_msgs/Image`` of depth in metres as ``16UC1`` or ``mono16`` (units of 1 / ``depth_scale`` m) or ``32FC1``."""
+    """A ``sensor_msgs/Image`` of depth in metres as ``16UC1`` or ``mono16`` (units of 1 / ``depth_scale``
+    m) or ``32FC1``."""
     h, w = depth_m.shape
     if encoding in ("16UC1", "mono16"):
         px = np.clip(np.round(np.nan_to_num(depth_m) * depth_scale), 0, 65535).astype("<u2")
