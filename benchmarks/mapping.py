@@ -221,7 +221,7 @@ def main(argv=None) -> int:
     settings = apply_overrides(profile.map_settings(), args.set)
     variants = dict(parse_variant(v, settings) for v in args.variant)
     work = Path(args.work)
-    results, tables = [], []
+    tables = []
     for ds in args.datasets:
         if ds == "sim":
             seq = open_dataset("default", work)
@@ -253,14 +253,13 @@ def main(argv=None) -> int:
                           picture=out.parent / f"{out.name}_{ds}.png", settings=settings, variants=variants,
                           live_hz=args.live_hz, settle_s=args.settle_s)
         r["title"] = title
-        results.append(r)
         tables.append(format_rows(title, r["rows"]))
         print(tables[-1], flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    merged = _merge(out.with_suffix(".json"), results)
-    out.with_suffix(".json").write_text(json.dumps(merged, indent=1, default=str) + "\n")
-    out.with_suffix(".md").write_text("\n\n".join(format_rows(r["title"], r["rows"]) for r in merged) + "\n")
+        # written after each dataset: a long run stopped midway keeps what it measured
+        out.parent.mkdir(parents=True, exist_ok=True)
+        merged = _merge(out.with_suffix(".json"), [r])
+        out.with_suffix(".json").write_text(json.dumps(merged, indent=1, default=str) + "\n")
+        out.with_suffix(".md").write_text("\n\n".join(format_rows(m["title"], m["rows"]) for m in merged) + "\n")
     return 0
 
 
