@@ -109,9 +109,9 @@ def test_free_points_are_drawn_in_free_cells_near_a_prior_surface():
     assert np.array_equal(again[0], pts)  # reproducible from the generator
 
 
-def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_surface_and_no_other():
-    from h3edge.mapping import _vote_kernel as k
-
+def _random_votes_and_their_cells() -> tuple[VoxelMap, CellVotes, np.ndarray]:
+    """A wall map with random votes and priors (2 cm cells, min_votes 2), and the flat indices
+    ``row * n^3 + cell`` of the cells a draw may pick: at least 2 votes, centre prior under 0.5."""
     vm = wall_map()
     cv = CellVotes(VoteConfig(cell=0.02, min_votes=2), voxel_size=0.1, behind=0.05)
     cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
@@ -119,13 +119,20 @@ def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_
     cv.votes[:] = rng.integers(-3, 4, cv.votes.shape)
     vm.priors = torch.from_numpy(rng.uniform(-1.5, 2.5, len(vm.priors)).astype(np.float32))
     cells = np.arange(cv.n ** 3)
-    frac = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n  # every cell's centre
-    vox = np.repeat(np.arange(len(vm)), len(cells))
+    centres = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n  # every cell's centre
     with torch.no_grad():
-        prior, _ = vm.coarse_sdf(torch.zeros(len(vox), 3),
-                                 (torch.from_numpy(vox), torch.from_numpy(np.tile(frac, (len(vm), 1)))))
+        prior, _ = vm.coarse_sdf(torch.zeros(len(vm) * len(cells), 3),
+                                 (torch.from_numpy(np.repeat(np.arange(len(vm)), len(cells))),
+                                  torch.from_numpy(np.tile(centres, (len(vm), 1)).astype(np.float32))))
     want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
     assert 0 < len(want) < cv.votes.size
+    return vm, cv, want
+
+
+def test_free_points_come_from_every_voted_cell_whose_centre_prior_reads_near_a_surface_and_no_other():
+    from h3edge.mapping import _vote_kernel as k
+
+    vm, cv, want = _random_votes_and_their_cells()
     priors = vm.priors.numpy()
     drawn = k.draw_free_cells(cv.votes, vm.voxel_vertices, priors, cv.n, 2, np.float32(0.5), 30 * len(want), 10 ** 8, 1)
     assert len(drawn) == 30 * len(want)
@@ -140,19 +147,7 @@ def test_the_device_draw_keeps_the_rule_of_the_host_draw():
     same cells as the host draw (enough votes, centre prior near a surface), all of them and no
     other, each point at the world position of its voxel and fraction; the points it cannot fill
     are marked -1."""
-    vm = wall_map()
-    cv = CellVotes(VoteConfig(cell=0.02, min_votes=2), voxel_size=0.1, behind=0.05)
-    cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
-    rng = np.random.default_rng(0)
-    cv.votes[:] = rng.integers(-3, 4, cv.votes.shape)
-    vm.priors = torch.from_numpy(rng.uniform(-1.5, 2.5, len(vm.priors)).astype(np.float32))
-    cells = np.arange(cv.n ** 3)
-    centres = (np.stack(np.unravel_index(cells, (cv.n,) * 3), 1) + 0.5) / cv.n
-    with torch.no_grad():
-        prior, _ = vm.coarse_sdf(torch.zeros(len(vm) * len(cells), 3),
-                                 (torch.from_numpy(np.repeat(np.arange(len(vm)), len(cells))),
-                                  torch.from_numpy(np.tile(centres, (len(vm), 1)).astype(np.float32))))
-    want = np.flatnonzero((cv.votes.reshape(-1) >= 2) & (prior.numpy() < 0.5))
+    vm, cv, want = _random_votes_and_their_cells()
     n = 10 * len(want)
     pts, vox, frac = cv.sample_free_tensor(n, vm, torch.Generator().manual_seed(0), near_prior=0.5)
     assert pts.shape == (n, 3) and vox.shape == (n,) and frac.shape == (n, 3)
