@@ -98,3 +98,10 @@ def test_intrinsics_must_describe_a_pinhole_camera():
     for cx in (1e300, -1e4, 2000.0):
         with pytest.raises(ValueError, match="principal point"):
             Intrinsics(640, 480, 525.0, 525.0, cx, 240.0)
+
+
+def test_a_field_of_view_under_a_degree_is_no_camera():
+    Intrinsics(640, 480, 20000.0, 20000.0, 320.0, 240.0)  # 1.4 degrees vertically: a long telephoto
+    for fx in (1e6, 1e9, 1e300):
+        with pytest.raises(ValueError, match="field of view"):
+            Intrinsics(640, 480, fx, fx, 320.0, 240.0)

@@ -19,6 +19,7 @@ import numpy as np
 
 PIXEL_CENTER_OFFSET = 0.5
 MAX_RAY_ANGLE_DEG = 85.0  # a pinhole image's edge rays: a 170-degree field of view at most
+MIN_FIELD_OF_VIEW_DEG = 1.0  # across the image, each way: fx = 1e9 px would put every pixel on one ray
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,10 @@ class Intrinsics:
                 max(abs(self.cy), abs(self.height - self.cy)) > reach * self.fy:
             raise ValueError(f"focal lengths fx={self.fx:g} fy={self.fy:g} px put the {self.width}x{self.height} "
                              f"image's edge rays more than {MAX_RAY_ANGLE_DEG} degrees off the optical axis")
+        narrowest = 2 * np.tan(np.radians(MIN_FIELD_OF_VIEW_DEG / 2))
+        if self.width < narrowest * self.fx or self.height < narrowest * self.fy:
+            raise ValueError(f"focal lengths fx={self.fx:g} fy={self.fy:g} px give the {self.width}x{self.height} "
+                             f"image a field of view under {MIN_FIELD_OF_VIEW_DEG} degree")
 
     @property
     def K(self) -> np.ndarray:

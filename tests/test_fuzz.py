@@ -1,0 +1,64 @@
+"""The rule "no single message changes what later valid messages do" as a differential fuzzer
+(issue [4/5]; ``benchmarks/fuzz.py`` is the long run): hostile frames generated from the input
+grammar (poses, depth, shapes, intrinsics, stamps) interleaved with four good frames leave the map
+the good frames alone make, every array of its state equal; each is an InputError or a counted
+drop. Hostile wire messages (truncated, bit-flipped, a header field replaced) are ProtocolErrors or
+decode, nothing else. Seeded (derandomized) and bounded."""
+
+from __future__ import annotations
+
+import collections
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from benchmarks.fuzz import (
+    decode_or_refuse,
+    hostile_bytes,
+    hostile_frame,
+    map_signature,
+    run_interleaved,
+    same_map,
+    wire_messages,
+)
+from h3edge.io import open_sequence
+
+SETTINGS = settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+
+
+@pytest.fixture(scope="module")
+def good(tiny_scene):
+    return [f for _, f in zip(range(4), open_sequence(tiny_scene))]
+
+
+@pytest.fixture(scope="module")
+def reference(good):
+    return map_signature(run_interleaved(good, []))
+
+
+def test_hostile_frames_leave_the_map_the_good_frames_make(good, reference):
+    tally: collections.Counter = collections.Counter()
+
+    @SETTINGS
+    @given(st.lists(st.tuples(st.integers(0, len(good)), hostile_frame(good[1])), min_size=1, max_size=6))
+    def run(items):
+        m = run_interleaved(good, [(p, k, a) for p, (k, a) in items], tally)
+        diff = same_map(map_signature(m), reference)
+        assert not diff, diff
+
+    run()
+    assert {k for k, _ in tally} == {"pose", "depth", "shape", "intrinsics", "stamp"}  # every class tried
+
+
+def test_hostile_wire_messages_are_protocol_errors(good):
+    frame_bytes, pose_bytes = wire_messages(good)
+    seen: collections.Counter = collections.Counter()
+
+    @SETTINGS
+    @given(hostile_bytes(frame_bytes, pose_bytes))
+    def run(item):
+        seen[decode_or_refuse(*item)] += 1  # anything but ProtocolError propagates and fails
+
+    run()
+    assert seen["refused"] > 0
