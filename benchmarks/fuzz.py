@@ -33,15 +33,8 @@ from hypothesis import strategies as st
 
 from h3edge import Mapper
 from h3edge.errors import InputError
-from h3edge.io.protocol import (
-    FrameMessage,
-    PoseMessage,
-    ProtocolError,
-    decode_frame,
-    decode_pose,
-    encode_frame,
-    encode_pose,
-)
+from h3edge.io import protocol
+from h3edge.io.protocol import ProtocolError
 from h3edge.mapping.engine import MapSettings
 
 HOSTILE_CLASSES = ("pose", "depth", "shape", "intrinsics", "stamp")
@@ -183,7 +176,7 @@ def hostile_bytes(draw, frame_bytes: bytes, pose_bytes: bytes) -> tuple[str, byt
 def decode_or_refuse(which: str, data: bytes) -> str:
     """'ok' when the bytes decode, 'refused' on ProtocolError; anything else propagates."""
     try:
-        decode_frame(data) if which == "frame" else decode_pose(data)
+        protocol.decode_frame(data) if which == "frame" else protocol.decode_pose(data)
     except ProtocolError:
         return "refused"
     return "ok"
@@ -191,8 +184,9 @@ def decode_or_refuse(which: str, data: bytes) -> str:
 
 def wire_messages(good) -> tuple[bytes, bytes]:
     f = good[0]
-    return (encode_frame(FrameMessage(1_000_000_000, 1, f.color, f.depth, f.intrinsics, f.pose), "png"),
-            encode_pose(PoseMessage(1_000_000_000, f.pose)))
+    return (protocol.encode_frame(protocol.FrameMessage(1_000_000_000, 1, f.color, f.depth, f.intrinsics, f.pose),
+                                  "png"),
+            protocol.encode_pose(protocol.PoseMessage(1_000_000_000, f.pose)))
 
 
 def main(argv: list[str] | None = None) -> dict:
