@@ -196,14 +196,8 @@ class CellVotes:
         """(N,) bool: the cell at each located point (``vox`` voxel id, -1 = none; ``frac`` its
         position in the voxel, [0, 1]^3, as :meth:`VoxelMap.locate` returns) has at least
         ``min_votes`` net free votes."""
-        out = np.zeros(len(vox), bool)
-        ok = (vox >= 0) & (vox < len(self.votes))
-        if not self.enabled or not ok.any():
-            return out
-        c = np.clip(np.floor(frac[ok] * self.n).astype(np.int64), 0, self.n - 1)
-        flat = (c[:, 0] * self.n + c[:, 1]) * self.n + c[:, 2]
-        out[ok] = self.votes[vox[ok], flat] >= self.cfg.min_votes
-        return out
+        return self.seen_free_tensor(torch.from_numpy(self.votes), torch.from_numpy(np.asarray(vox, np.int64)),
+                                     torch.from_numpy(np.asarray(frac))).numpy()  # the one rule, on the host
 
     def seen_free_points(self, voxels: VoxelMap, pts: np.ndarray, vox: np.ndarray) -> np.ndarray:
         """(N,) bool: :meth:`seen_free` at world points ``pts`` (N, 3) metres located in voxel ids
