@@ -97,17 +97,16 @@ def _print_run(run: dict, out: Path) -> None:
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
-    import torch
-
     from h3edge.apps.offline import run_offline
-    from h3edge.config import load_profile
+    from h3edge.config import apply_overrides, load_profile
     from h3edge.io import open_sequence
 
     profile = load_profile(args.profile)
     if args.device:
         profile = profile.with_device(args.device)
     if args.threads:
-        torch.set_num_threads(args.threads)
+        threads = apply_overrides(profile.mapping, [f"mapper.threads={args.threads}"])
+        profile = dataclasses.replace(profile, mapping=threads)
     seq = open_sequence(args.sequence, _ros_config(args, profile.ros))
     run = run_offline(seq, profile, Path(args.out), frames=args.frames, stride=args.stride,
                       evaluate_map=not args.no_eval, camera_hz=args.camera_hz, settle_s=args.settle_s)
@@ -502,7 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--frames", type=int, help="map only the first N (strided) frames")
     mp.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     mp.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
-    mp.add_argument("--threads", type=int, help="torch CPU threads")
+    mp.add_argument("--threads", type=int, help="the mapper's CPU threads (the profile's [mapper] threads)")
     mp.add_argument("--no-eval", action="store_true", help="skip evaluation")
     mp.add_argument("--camera-hz", type=float, help="live replay, as the service maps: frames arrive at this "
                                                     "rate and are integrated as they come (what integration cannot "
@@ -602,6 +601,9 @@ def _show_defaults(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from h3edge.mapping.threads import passive_environment
+
+    passive_environment()  # before torch loads: idle OpenMP workers sleep instead of spinning
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")

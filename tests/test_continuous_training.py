@@ -5,9 +5,13 @@ training rate in ``status``."""
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
+import time
 
 import numpy as np
 import pytest
+import torch
 
 from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.eval.metrics import psnr
@@ -104,3 +108,38 @@ def test_replay_counts_survive_a_checkpoint(tiny_scene):
     r = MapEngine.from_state_dict(LEAN, meta, arrays)
     assert r.iterations == m.iterations == {"frame": LEAN.mapper.iterations, "between_frames": 1}
     assert np.isfinite(r.train_between_frames()["loss"])
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread nice is Linux's")
+def test_the_training_thread_runs_below_integration_with_the_pools_sized(tiny_scene):
+    """``training_nice`` levels below the thread that integrates (which keeps its own), and the
+    training thread's numba kernels and torch run ``threads`` threads."""
+    from h3edge.mapping.background import BackgroundTraining
+
+    cfg = dataclasses.replace(LEAN.mapper, training_nice=7, threads=1)
+    m = MapEngine(dataclasses.replace(LEAN, mapper=cfg))
+    seq = ReplicaSequence(tiny_scene)
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    seen = {}
+
+    def probe():
+        import numba
+        import torch
+
+        seen.update(nice=os.getpriority(os.PRIO_PROCESS, threading.get_native_id()),
+                    numba=numba.get_num_threads(), torch=torch.get_num_threads())
+
+    m.step_hook = probe
+    torch_before = torch.get_num_threads()
+    bt = BackgroundTraining(m).start()
+    try:
+        for f in list(seq)[:4]:
+            assert m.integrate(f).mapped
+        deadline = time.monotonic() + 60
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        bt.stop()
+        torch.set_num_threads(torch_before)
+    assert seen == {"nice": min(19, mine + 7), "numba": 1, "torch": 1}
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine

@@ -6,8 +6,10 @@ integrated frame no step has used yet); it holds the map lock only to draw its r
 its updates, and gives way there to integration, snapshots and checkpoints
 (:meth:`MapEngine.exclusive`): its forward and backward passes run beside integration, on the other
 core, so a frame waits at most for a step's ray draw or update and training never waits for a
-frame. When there is nothing to train on yet (no keyframe), the thread polls every ``idle_s``. A
-step that raises is logged, counted in :attr:`errors` and handed to ``on_error``; the loop goes on.
+frame. The thread runs ``[mapper] training_nice`` nice levels below integration
+(:mod:`h3edge.mapping.threads`): when both want a core, a frame's integration gets it. When there
+is nothing to train on yet (no keyframe), the thread polls every ``idle_s``. A step that raises is
+logged, counted in :attr:`errors` and handed to ``on_error``; the loop goes on.
 
 Integration and training both call numba's parallel kernels, now from two threads: that needs a
 thread-safe numba threading layer (OpenMP or TBB; numba picks one when it finds it). Numba's own
@@ -22,6 +24,7 @@ import threading
 from collections.abc import Callable
 
 from h3edge.mapping.engine import MapEngine
+from h3edge.mapping.threads import lower_thread_priority, size_pools
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +85,9 @@ class BackgroundTraining:
                 self._turn.notify_all()
 
     def _run(self) -> None:
+        cfg = self.mapper.cfg
+        size_pools(cfg.threads)
+        lower_thread_priority(cfg.training_nice)  # before its first parallel region starts workers
         while not self._stop.is_set():
             with self._turn:
                 self._turn.wait_for(lambda: self._pauses == 0 or self._stop.is_set())

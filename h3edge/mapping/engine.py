@@ -7,8 +7,9 @@ Table I names): validate and clean the frame (``read``); allocate leaf voxels an
 SDF priors (``priors``); mark free space and the fine free-space votes; fuse its colours into the
 colour base (``color_base``, :mod:`h3edge.mapping.color_base`); every ``update_interval`` frames,
 determine the voxels' texture patterns and refresh the texture encoder's warps (``texture``);
-decide keyframe insertion, scored by the colour gradient (``keyframes``). A bad frame is dropped
-with a reason (logged and counted); it never touches the map.
+decide keyframe insertion, scored by the colour gradient (``keyframes``); free space and the colour
+base on a helper thread beside the rest (D53-6). A bad frame is dropped with a reason (logged and
+counted); it never touches the map.
 
 Training (:meth:`MapEngine.train_between_frames`): one optimisation step on ``rays_per_iteration``
 rays drawn evenly from the selected keyframes and the newest integrated frame no step has used yet
@@ -24,6 +25,7 @@ the keyframes selected for each (``training``), one frame after the other.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import logging
@@ -56,6 +58,7 @@ from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
+from h3edge.mapping.threads import size_pools
 from h3edge.mapping.trainer import RayBatch, TrainConfig, Trainer
 from h3edge.mapping.view import MapView
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, pack, unpack
@@ -115,6 +118,12 @@ class MapperConfig:
     train_between_frames: bool = False
     """train on a thread of its own, every frame integrated as it comes (false: each frame trains inline with
     ``iterations`` steps); paper false (per-frame mapping); D53-1"""
+    threads: int = 0
+    """CPU threads of the mapper's torch and numba pools (0: every core; :mod:`h3edge.mapping.threads`); fewer leave
+    cores to the rest of the robot; paper: not stated"""
+    training_nice: int = 2
+    """nice levels the background training thread runs below the integrating thread (Linux; 0..19): when both want a
+    core, a frame's integration gets it; 0: equal; paper: none (it trains inline); D53-6"""
     seed: int = 0
     """seed of the mapper's random draws (rays, keyframe picks, sampling): the same frames map the same"""
 
@@ -123,6 +132,9 @@ class MapperConfig:
             raise ValueError(f"edge_rays is a share of the rays, in [0, 1], got {self.edge_rays}")
         if not 0.0 <= self.edge_max_incidence < 90.0:
             raise ValueError(f"edge_max_incidence must be in [0, 90) degrees, got {self.edge_max_incidence}")
+        if self.threads < 0 or not 0 <= self.training_nice <= 19:
+            raise ValueError(f"threads must be >= 0 (0: every core) and training_nice in [0, 19], got {self.threads} "
+                             f"and {self.training_nice}")
 
 
 @dataclass(frozen=True)
@@ -234,6 +246,7 @@ class MapEngine:
         self._lock = threading.RLock()  # the map: integration, training steps, snapshots
         self._turns = threading.Condition()  # exclusive() callers waiting go before training steps
         self._waiting = 0
+        self._helper: concurrent.futures.ThreadPoolExecutor | None = None  # integration's second track
         # called on the mapping thread after every training step: where a service hands out
         # consistent snapshots without waiting for the whole frame
         self.step_hook: Callable[[], None] | None = None
@@ -242,13 +255,13 @@ class MapEngine:
 
     def __getstate__(self) -> dict:  # copies (tests) take the map, not its locks
         state = dict(self.__dict__)
-        for k in ("_lock", "_turns", "_waiting"):
+        for k in ("_lock", "_turns", "_waiting", "_helper"):
             state.pop(k)
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._lock, self._turns, self._waiting = threading.RLock(), threading.Condition(), 0
+        self._lock, self._turns, self._waiting, self._helper = threading.RLock(), threading.Condition(), 0, None
 
     # ----------------------------------------------------------------- set-up
     def _build_field(self) -> None:
@@ -342,6 +355,7 @@ class MapEngine:
         on the training thread. A dropped frame changes nothing in the map. Thread-safe against
         :meth:`train_between_frames` and :meth:`exclusive` on other threads."""
         t_frame = time.perf_counter()
+        size_pools(self.cfg.threads)  # numba's count is the calling thread's
         defer_texture = self.cfg.train_between_frames if defer_texture is None else defer_texture
         code, reason = self.check_frame(frame)
         if code:
@@ -361,21 +375,49 @@ class MapEngine:
         return result
 
     def _commit(self, frame: Frame, current: ImageFrame, pts: np.ndarray, defer_texture: bool) -> FrameResult:
-        """The map-changing part of :meth:`integrate` (under the map lock)."""
-        with self.timings.time("priors"):
-            set_before = self.voxels.prior_set.copy()
-            new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
-            self._note_changes(new, set_before)
-        if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
-            return self._drop(frame, "no_voxels", f"no voxel has {self.settings.voxels.min_points} depth points yet")
+        """The map-changing part of :meth:`integrate` (under the map lock). Two tracks: free space
+        and the colour base (which do not read the voxels) on the integration helper thread, beside
+        the priors, cell votes and keyframe decision on this one; both end before it returns. While
+        the map has no voxel yet the tracks run one after the other (a frame that allocates none is
+        dropped and must leave no trace)."""
+        beside = self._beside(current, frame.intrinsics) if len(self.voxels) else None
+        try:
+            with self.timings.time("priors"):
+                set_before = self.voxels.prior_set.copy()
+                new = self.voxels.allocate(current.depth, frame.intrinsics, current.pose, points=pts)
+                self._note_changes(new, set_before)
+            if len(self.voxels) == 0:  # nothing to train on: the frame leaves no trace
+                return self._drop(frame, "no_voxels",
+                                  f"no voxel has {self.settings.voxels.min_points} depth points yet")
+            if beside is None:
+                self._fuse_unplaced(current, frame.intrinsics)
+            if self.cell_votes.enabled:
+                with self.timings.time("cell_votes"):
+                    self.cell_votes.mark(self.voxels, current.depth, frame.intrinsics, current.pose)
+            return self._decide(frame, current, pts, new, defer_texture)
+        finally:
+            if beside is not None:
+                beside.result()  # its exception, if any, is the frame's
+
+    def _beside(self, current: ImageFrame, intr: Intrinsics) -> concurrent.futures.Future:
+        """:meth:`_fuse_unplaced` on the integration helper thread (made on first use)."""
+        if self._helper is None:
+            self._helper = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="h3edge-integration")
+        return self._helper.submit(self._fuse_unplaced, current, intr, True)
+
+    def _fuse_unplaced(self, current: ImageFrame, intr: Intrinsics, helper: bool = False) -> None:
+        """The parts of integration that do not read the voxels: free space, the colour base."""
+        if helper:
+            size_pools(self.cfg.threads)
         with self.timings.time("free_space"):
-            self.free_space.mark(current.depth, frame.intrinsics, current.pose)
-        if self.cell_votes.enabled:
-            with self.timings.time("cell_votes"):
-                self.cell_votes.mark(self.voxels, current.depth, frame.intrinsics, current.pose)
+            self.free_space.mark(current.depth, intr, current.pose)
         if self.color_base is not None:
             with self.timings.time("color_base"):
-                self.color_base.fuse(current.color, current.depth, frame.intrinsics, current.pose)
+                self.color_base.fuse(current.color, current.depth, intr, current.pose)
+
+    def _decide(self, frame: Frame, current: ImageFrame, pts: np.ndarray, new: np.ndarray,
+                defer_texture: bool) -> FrameResult:
+        """The rest of :meth:`_commit`: the field placed, texture patterns, the keyframe decision."""
         if self.field is None:  # the first frame that maps places the grids' reference cube
             self._place_field(current.pose[:3, 3])
         grad = None
