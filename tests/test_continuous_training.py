@@ -9,6 +9,7 @@ import os
 import threading
 import time
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -140,6 +141,7 @@ def test_the_training_thread_runs_below_integration_with_the_pools_sized(tiny_sc
             time.sleep(0.05)
     finally:
         bt.stop()
-        torch.set_num_threads(torch_before)
+        torch.set_num_threads(torch_before)  # integrate() sized this thread's pools: the suite's go on as they were
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     assert seen == {"nice": min(19, mine + 7), "numba": 1, "torch": 1}
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
