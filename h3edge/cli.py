@@ -403,6 +403,20 @@ def _cmd_profile_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fleet(args: argparse.Namespace) -> int:
+    import time
+
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.fleet import fleet_status, format_fleet
+
+    with open_session(_zenoh_conf(args)) as session:
+        t0 = time.perf_counter()
+        entries = fleet_status(session, args.timeout)
+        seconds = time.perf_counter() - t0
+    print(json.dumps(entries, indent=1) if args.json else format_fleet(entries, seconds))
+    return 0 if entries else 1
+
+
 def _cmd_deploy_plan(args: argparse.Namespace) -> int:
     from h3edge.deploy import format_plan, plan
 
@@ -582,6 +596,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--timeout", type=float, default=60.0)
     _add_zenoh_args(q)
     q.set_defaults(func=_cmd_query)
+
+    fl = sub.add_parser("fleet", help="every h3edge service on the zenoh network (one wildcard query)")
+    fl.add_argument("what", choices=["status"])
+    fl.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the services' replies")
+    fl.add_argument("--json", action="store_true", help="print the status documents as JSON")
+    _add_zenoh_args(fl)
+    fl.set_defaults(func=_cmd_fleet)
     _show_defaults(p)
     return p
 

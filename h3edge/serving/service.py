@@ -71,6 +71,8 @@ MAX_ERROR_CHARS = 400  # characters of a refused message's error text kept in th
 class ServiceConfig:
     map_id: str = "default"
     """the map's name: its zenoh keys (h3edge/<map_id>/...) and its folder under state_dir"""
+    world_frame: str = "world"
+    """the name of the frame the robot's poses, and so the map, are in (what a fleet's status lists beside the map)"""
     state_dir: str = "/var/lib/h3edge"
     """checkpoints (systemd's StateDirectory)"""
     checkpoint_interval_s: float = 60.0
@@ -564,7 +566,10 @@ class MapService:
             return round(len(recent) / 10.0, 2)
 
         delays = list(self._delays)
-        return {"map_id": self.cfg.map_id, "profile": self.profile_name, "device": str(self.mapper.device),
+        last_mapped = self._recent_mapped[-1] if self._recent_mapped else None
+        return {"map_id": self.cfg.map_id, "world_frame": self.cfg.world_frame, "profile": self.profile_name,
+                "device": str(self.mapper.device),
+                "last_frame_age_s": None if last_mapped is None else round(now - last_mapped, 1),
                 "inference": self.inference_info(),
                 "uptime_s": round(time.time() - self.started, 1),
                 "frames": {"received": self.ingest.counts["frames_received"],
