@@ -60,12 +60,16 @@ _TORCH = ("import torch\n"
           "        a = torch.tanh(a @ a * 0.01)\n")
 
 
+def _environment(**openmp: str) -> dict[str, str]:
+    """This environment without its OpenMP settings, plus ``openmp``."""
+    return {**{k: v for k, v in os.environ.items() if k not in _OPENMP_KEYS}, **openmp}
+
+
 def _start_load(kinds: list[str]) -> list[subprocess.Popen]:
     procs = []
     for kind in kinds:
         code = _BUSY if kind == "busy" else _TORCH
-        env = {k: v for k, v in os.environ.items() if k not in _OPENMP_KEYS}
-        procs.append(subprocess.Popen([sys.executable, "-c", code], env=env,
+        procs.append(subprocess.Popen([sys.executable, "-c", code], env=_environment(),
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     time.sleep(1.5 if procs else 0.0)  # the load running (torch imported) before the mapper starts
     return procs
@@ -103,7 +107,7 @@ def worker(dataset: str, frames: int, warmup: int, overrides: list[str], work: P
 
 def _run_worker(setup: str, args) -> dict:
     env_extra, overrides = SETUPS[setup]
-    env = dict({k: v for k, v in os.environ.items() if k not in _OPENMP_KEYS}, **env_extra)
+    env = _environment(**env_extra)
     cmd = [sys.executable, "-m", "benchmarks.contention", "--worker", "--dataset", args.dataset,
            "--frames", str(args.frames), "--warmup", str(args.warmup), "--work", str(args.work)]
     for o in overrides:

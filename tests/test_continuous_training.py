@@ -124,9 +124,6 @@ def test_the_training_thread_runs_below_integration_with_the_pools_sized(tiny_sc
     seen = {}
 
     def probe():
-        import numba
-        import torch
-
         seen.update(nice=os.getpriority(os.PRIO_PROCESS, threading.get_native_id()),
                     numba=numba.get_num_threads(), torch=torch.get_num_threads())
 

@@ -402,13 +402,12 @@ class MapEngine:
     def _beside(self, current: ImageFrame, intr: Intrinsics) -> concurrent.futures.Future:
         """:meth:`_fuse_unplaced` on the integration helper thread (made on first use)."""
         if self._helper is None:
-            self._helper = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="h3edge-integration")
-        return self._helper.submit(self._fuse_unplaced, current, intr, True)
+            self._helper = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="h3edge-integration",
+                                                                 initializer=size_pools, initargs=(self.cfg.threads,))
+        return self._helper.submit(self._fuse_unplaced, current, intr)
 
-    def _fuse_unplaced(self, current: ImageFrame, intr: Intrinsics, helper: bool = False) -> None:
+    def _fuse_unplaced(self, current: ImageFrame, intr: Intrinsics) -> None:
         """The parts of integration that do not read the voxels: free space, the colour base."""
-        if helper:
-            size_pools(self.cfg.threads)
         with self.timings.time("free_space"):
             self.free_space.mark(current.depth, intr, current.pose)
         if self.color_base is not None:
