@@ -43,6 +43,7 @@ settings (``render.*``: the same map, so the comparison carries no replay noise)
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass
@@ -59,6 +60,7 @@ from h3edge.eval.metrics import mesh_to_mesh
 from h3edge.eval.tsdf import TsdfFusion
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.engine import MapEngine
+from h3edge.mapping.raymarch import RenderConfig
 
 log = logging.getLogger("benchmarks.anytime")
 MESH_POINTS = 50_000  # surface samples per mesh for the holes share
@@ -294,6 +296,21 @@ def format_result(r: dict) -> str:
     return "\n".join(lines)
 
 
+def render_variant(spec: str, base: RenderConfig) -> tuple[str, RenderConfig]:
+    """``'LABEL:render.KEY=VALUE;...'`` -> (label, ``base`` with those render settings; values parsed
+    as JSON). Not checked against the rest of the settings as a profile is: a render setting a profile
+    refuses can still be scored on a map, to show what it did (D53-7)."""
+    label, _, sets = spec.partition(":")
+    changes = {}
+    for item in filter(None, sets.split(";")):
+        key, _, raw = item.partition("=")
+        section, _, name = key.partition(".")
+        if section != "render":
+            raise SystemExit(f"--render-variant {spec!r}: only render.* settings, got {key!r}")
+        changes[name] = json.loads(raw)
+    return label, dataclasses.replace(base, **changes)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+", default=["sim", "studio", "loft", "replica", "real"],
@@ -322,7 +339,7 @@ def main(argv=None) -> int:
     profile = load_profile(args.profile)
     settings = apply_overrides(profile.map_settings(), args.set)
     variants = dict(parse_variant(v, settings) for v in args.variant)
-    renders = {label: st.render for label, st in (parse_variant(v, settings) for v in args.render_variant)}
+    renders = dict(render_variant(v, settings.render) for v in args.render_variant)
     out = Path(args.out)
     titles = {"sim": "default simulated scene", "studio": "studio simulated scene",
               "loft": "photographic simulated scene (loft, hand-held pace)",

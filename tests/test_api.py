@@ -5,6 +5,7 @@ settings."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import re
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pytest
 
 import h3edge
 from h3edge import Intrinsics, Mapper
+from h3edge.config import load_profile
 from h3edge.errors import InputError
 from h3edge.io import open_sequence
 from h3edge.mapping.map_file import CheckpointError, read_header
@@ -156,12 +158,31 @@ def test_the_service_refuses_a_map_saved_under_other_settings(small_mapper, tmp_
     assert same.read_mapper(tmp_path / "map.h3ckpt")[0].frames_mapped == m.frames_mapped
     on_cuda = dataclasses.replace(m.settings, mapper=dataclasses.replace(m.settings.mapper, device="cuda"))
     assert settings_differences(m.settings, on_cuda) == []  # where it runs is no difference
+    # how the map is read is no difference: it is served with the service's render settings (D53-7)
+    read_otherwise = dataclasses.replace(m.settings, render=dataclasses.replace(m.settings.render, free_floor=0.7))
+    served = Checkpointer(tmp_path, "m", "lean", read_otherwise, Timings(), lambda c, t: None)
+    assert served.read_mapper(tmp_path / "map.h3ckpt")[0].settings.render.free_floor == 0.7
     other = dataclasses.replace(m.settings, voxels=dataclasses.replace(m.settings.voxels, truncation=0.08))
     ckpt = Checkpointer(tmp_path, "m", "x86-cpu", other, Timings(), lambda c, t: None)
     with pytest.raises(CheckpointError, match=r"voxels.truncation: 0.05 -> 0.08"):
         ckpt.read_mapper(tmp_path / "map.h3ckpt")
     with pytest.raises(CheckpointError, match="cannot resume"):
         ckpt.resume()
+
+
+def test_a_map_saved_with_a_refused_render_floor_loads_with_the_shipped_one(caplog):
+    """Maps saved before D53-7 hold render.free_floor = 0.1, which the settings now refuse; their
+    own settings read it as the shipped floor, with a warning, and everything else as saved."""
+    from h3edge.mapping.settings_file import SAVED_FREE_FLOOR, map_settings_from_saved
+
+    saved = dataclasses.asdict(load_profile("x86-cpu").map_settings())
+    saved["render"]["free_floor"], saved["voxels"]["truncation"] = 0.1, 0.06
+    with caplog.at_level(logging.WARNING):
+        back = map_settings_from_saved(saved, "old.h3ckpt: settings")
+    assert back.render.free_floor == SAVED_FREE_FLOOR and back.voxels.truncation == 0.06
+    assert "free_floor" in caplog.text
+    saved["render"]["free_floor"] = 0.0  # off stays off
+    assert map_settings_from_saved(saved, "old").render.free_floor == 0.0
 
 
 def test_profile_errors_name_the_key(tmp_path):

@@ -251,6 +251,35 @@ def test_seen_free_points_that_read_outside_are_left_out_with_the_same_loss_and_
     assert torch.equal(g_full[1][hit], g_kept[1]) and torch.allclose(g_full[2][hit], g_kept[2], rtol=1e-4, atol=1e-9)
 
 
+def test_a_window_of_seen_free_samples_renders_no_surface():
+    """The voxels in front of the wall hold a prior crossing 9 cm in front of it (a phantom an
+    untrained voxel keeps) where two frames saw through. At the shipped floor the window around
+    that crossing carries no weight and the ray renders the wall; at 0.1 truncation units each of
+    its samples weighed 0.1 and the window rendered the phantom (D53-7); the settings refuse that floor."""
+    from h3edge.config import load_profile
+    from h3edge.mapping.engine import MapSettings
+    from h3edge.mapping.field import Field, FieldConfig
+    from h3edge.mapping.raymarch import MapRenderer, RenderConfig, floor_window_weight
+
+    vm = wall_map()
+    cv = CellVotes(VoteConfig(cell=0.01, min_votes=2), voxel_size=0.1, behind=0.05)
+    for _ in range(2):
+        cv.mark(vm, np.full((INTR.height, INTR.width), 2.0, np.float32), INTR, FRONT)
+    y = torch.from_numpy(unpack(vm.vertex_keys)[:, 1])
+    with torch.no_grad():
+        vm.priors[y == 19], vm.priors[y == 20], vm.priors[y == 21] = 0.1, -0.9, -1.0  # crossing at 1.91 m
+    fld = Field(FieldConfig(geo_log2_table=10, tex_log2_table=10, sdf_layers=2), np.array([[-3.0] * 3, [3.0] * 3]), 0.1)
+    shipped = load_profile("x86-cpu").map_settings()
+    assert floor_window_weight(shipped.render, shipped.field.beta) < 1e-3
+    depth = MapRenderer(fld, vm, shipped.render, cv).render(INTR, FRONT)[1]
+    assert np.all(np.abs(depth - 2.0) < 0.04)
+    low = RenderConfig(free_floor=0.1)
+    assert floor_window_weight(low, shipped.field.beta) > low.min_weight
+    assert np.median(MapRenderer(fld, vm, low, cv).render(INTR, FRONT)[1]) < 1.95
+    with pytest.raises(ValueError, match="free_floor"):
+        MapSettings(render=low)
+
+
 def test_the_render_floor_lifts_the_sdf_in_free_cells_only():
     """``render.free_floor``: where the votes say free, the SDF a render or mesh reads is at least
     the floor; elsewhere (a cell just in front of or behind the wall, outside the map) it is untouched

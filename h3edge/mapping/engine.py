@@ -55,7 +55,7 @@ from h3edge.mapping.keyframes import (
     gradient_scores,
 )
 from h3edge.mapping.losses import LossWeights
-from h3edge.mapping.raymarch import MapRenderer, RenderConfig
+from h3edge.mapping.raymarch import MapRenderer, RenderConfig, floor_window_weight
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.threads import size_pools
@@ -155,6 +155,11 @@ class MapSettings:
 
     def __post_init__(self) -> None:
         self.votes.cells_per_side(self.voxels.voxel_size)  # refused when the profile loads, not at the first frame
+        r = self.render
+        if r.free_floor > 0 and floor_window_weight(r, self.field.beta) >= r.min_weight:
+            raise ValueError(f"render.free_floor = {r.free_floor:g} lets a window of seen-free samples render: its "
+                             f"weight {floor_window_weight(r, self.field.beta):.3f} reaches render.min_weight = "
+                             f"{r.min_weight:g} (field.beta = {self.field.beta:g}); raise the floor")
 
 
 @dataclass

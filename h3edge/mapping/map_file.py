@@ -35,6 +35,7 @@ import numpy as np
 from h3edge.errors import InputError
 from h3edge.mapping.engine import MapEngine, MapSettings
 from h3edge.mapping.onnx_decoders import export_decoders
+from h3edge.mapping.raymarch import RenderConfig
 from h3edge.mapping.settings_file import map_settings_from_saved
 
 MAGIC = b"H3EDGE-CKPT\n"
@@ -172,6 +173,11 @@ def saved_settings(header: dict, path: Path) -> MapSettings:
     if not isinstance(saved, dict):
         raise CheckpointError(f"{path}: the header holds no mapping settings")
     return map_settings_from_saved(saved, f"{path}: settings")
+
+
+# how a map is read (rendered, meshed), not what it holds: a map saved under other values is read with
+# the caller's (render.near also bounds the trainer's free-space samples, so it is not among them)
+READ_SETTINGS = tuple(f"render.{f.name}" for f in dataclasses.fields(RenderConfig) if f.name != "near")
 
 
 def settings_differences(saved: MapSettings, wanted: MapSettings, ignore: tuple[str, ...] = ("mapper.device",)

@@ -87,7 +87,8 @@ class RenderConfig:
     """render requests (queries, offline) above this are refused"""
     free_floor: float = 0.0
     """truncation units: the least SDF a render or mesh reads in cells the frames voted free
-    (:mod:`h3edge.mapping.cell_votes`); paper 0 (the field as trained); D53-4"""
+    (:mod:`h3edge.mapping.cell_votes`), far enough from 0 that a fine window at it carries no rendering weight
+    (:func:`floor_window_weight`); paper 0 (the field as trained); D53-4, D53-7"""
     base_surface: float = 0.0
     """m: renders take the fused colour base's zero crossing (:mod:`h3edge.mapping.color_base`) where the field's lies
     farther than this from it or is missing; paper 0 (the field alone); D53-4"""
@@ -198,6 +199,15 @@ def _base_distance(base, pts: np.ndarray, vox: np.ndarray, lookup: PriorLookup, 
     if lift is not None:
         dist = np.where(lift > 0, np.maximum(dist, _FREE_DISTANCE), dist)
     return dist, known
+
+
+def floor_window_weight(cfg: RenderConfig, beta: float) -> float:
+    """The rendering weight of a fine window whose every sample sits at ``cfg.free_floor``
+    (``beta``: the field's kernel width, truncation units). At or above ``cfg.min_weight`` a run of
+    seen-free cells renders as a surface: at 0.1 with the paper's beta each sample weighs 0.105 and
+    a window 0.94, which drew phantom surfaces wherever the camera had seen through (D53-7)."""
+    a = 1.0 / (1.0 + np.exp(-cfg.free_floor / beta))
+    return float(cfg.fine_samples * a * (1.0 - a))
 
 
 def free_floor_fn(votes, voxels, floor: float) -> FloorFn | None:

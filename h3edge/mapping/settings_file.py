@@ -22,12 +22,15 @@ else:  # JetPack 6's Python 3.10
 
 from h3edge.errors import InputError
 from h3edge.mapping.engine import MapSettings
+from h3edge.mapping.field import FieldConfig
+from h3edge.mapping.raymarch import RenderConfig, floor_window_weight
 
 log = logging.getLogger(__name__)
 
 # The shipped profiles (package data); the repository's top-level profiles/ holds the same files.
 PROFILES_DIR = Path(__file__).resolve().parents[1] / "profiles"
 MAPPING_TABLES = frozenset(f.name for f in dataclasses.fields(MapSettings))
+SAVED_FREE_FLOOR = 0.5  # truncation units: what a saved map's refused render floor is read as (x86-cpu's, D53-7)
 
 
 class ProfileError(InputError):
@@ -107,5 +110,15 @@ def map_settings_from_profile(name_or_path: str | Path) -> MapSettings:
 
 def map_settings_from_saved(saved: dict, where: str) -> MapSettings:
     """The settings a map was saved with (``dataclasses.asdict`` of its :class:`MapSettings`); a
-    setting this version no longer has is dropped with a warning, a missing one takes its default."""
+    setting this version no longer has is dropped with a warning, a missing one takes its default.
+    A render floor this version refuses (D53-7: a map saved at 0.1) is read as the shipped
+    ``SAVED_FREE_FLOOR``, with a warning: how a map renders is not what it holds."""
+    render = saved.get("render")
+    if isinstance(render, dict) and isinstance(saved.get("field", {}), dict):
+        beta = saved.get("field", {}).get("beta", FieldConfig.beta)
+        cfg = section(RenderConfig, render, f"{where}: [render]", unknown="drop")
+        if cfg.free_floor > 0 and isinstance(beta, (int, float)) and floor_window_weight(cfg, beta) >= cfg.min_weight:
+            log.warning("%s: render.free_floor = %g lets seen-free space render (D53-7); read as %g", where,
+                        cfg.free_floor, SAVED_FREE_FLOOR)
+            saved = {**saved, "render": {**render, "free_floor": SAVED_FREE_FLOOR}}
     return map_settings(saved, where, unknown="drop")

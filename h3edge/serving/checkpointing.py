@@ -26,6 +26,7 @@ from h3edge.api import Mapper, MapSettings
 from h3edge.errors import QueryError
 from h3edge.mapping.map_file import (
     CHECKPOINT_NAME,
+    READ_SETTINGS,
     CheckpointError,
     check_writable,
     previous_path,
@@ -76,7 +77,8 @@ class Checkpointer:
         header, _ = read_header(path)
         if header.get("map_id") != self.map_id:
             raise CheckpointError(f"checkpoint is of map {header.get('map_id')!r}, not {self.map_id!r}")
-        diff = settings_differences(saved_settings(header, path), self.settings)
+        # where it runs and how it is read (READ_SETTINGS) are no difference: it is served with this service's
+        diff = settings_differences(saved_settings(header, path), self.settings, ("mapper.device", *READ_SETTINGS))
         if diff:
             shown = "; ".join(diff[:6]) + (f"; and {len(diff) - 6} more" if len(diff) > 6 else "")
             profile = str(header.get("profile", "?"))[:64]
