@@ -112,6 +112,10 @@ def test_compose_renders_the_base_where_the_field_is_neutral_and_the_field_where
     assert torch.allclose(out[0], base[0], atol=1e-6) and torch.equal(out[1], field[1])
     brighter = compose(torch.full((1, 3), 0.8), base[:1], torch.tensor([True]))
     assert (brighter > base[:1]).all() and (brighter < 1).all()
+    # relative to the MLP's colour where it has learned nothing (D53-8): that colour renders the base
+    tint = torch.tensor([[0.43, 0.45, 0.43]])
+    assert torch.allclose(compose(tint.expand(2, 3), base, torch.tensor([True, True]), tint), base, atol=1e-6)
+    assert (compose(torch.full((1, 3), 0.5), base[:1], torch.tensor([True]), tint) > base[:1]).all()
 
 
 def test_bad_settings_are_refused_when_the_profile_loads():

@@ -25,9 +25,10 @@ crossing where the field has not (yet) put one there: the geometry every integra
 before training catches up.
 
 Composition (:func:`compose`): where the base knows a colour b, the field's colour is
-sigmoid(logit(b) + z) with z the colour MLP's logit, i.e. the MLP's output acts as odds
-multiplying the base's: an MLP output of 0.5 renders the base unchanged; elsewhere the MLP's colour
-is used as it is.
+sigmoid(logit(b) + z - z0) with z the colour MLP's logit and z0 its logit at zero texture features
+(what a texture cell no step has reached reads), i.e. the MLP's output acts as odds multiplying the
+base's, relative to its output where it has learned nothing: a cell the texture grids have not
+learned renders the base unchanged; elsewhere the MLP's colour is used as it is.
 
 Cost: 44 bytes a cell (a key, one RGB + weight + distance row, and the slot table at most a quarter full); a
 640x480 frame at stride 3 with band 1 touches ~100k cells (5-10 ms in one numba pass on this
@@ -182,9 +183,18 @@ class ColorBase:
 _EPS = 1.0 / 512  # the base's colour is kept inside (eps, 1 - eps) so that its odds stay finite
 
 
-def compose(field_rgb: torch.Tensor, base_rgb: torch.Tensor, known: torch.Tensor) -> torch.Tensor:
-    """sigmoid(logit(base) + logit(field)) where ``known``, ``field_rgb`` elsewhere; (N, 3) in [0, 1]."""
+def compose(field_rgb: torch.Tensor, base_rgb: torch.Tensor, known: torch.Tensor,
+            neutral: torch.Tensor | None = None) -> torch.Tensor:
+    """sigmoid(logit(base) + logit(field) - logit(neutral)) where ``known``, ``field_rgb`` elsewhere;
+    (N, 3) in [0, 1]. ``neutral`` (1, 3) or (N, 3): the field colour that leaves the base unchanged
+    (default 0.5); the field passes the colour MLP's output at zero texture features, so that a
+    global tint the MLP learns early (real set, last frame: 0.43 / 0.45 / 0.43 after 33 steps) does
+    not darken every surface the texture grids have not learned yet (D53-8)."""
     b = base_rgb.clamp(_EPS, 1 - _EPS)
     odds = field_rgb * b
-    mixed = odds / (odds + (1 - field_rgb) * (1 - b))
+    rest = (1 - field_rgb) * (1 - b)
+    if neutral is not None:
+        n = neutral.clamp(_EPS, 1 - _EPS)
+        odds, rest = odds * (1 - n), rest * n
+    mixed = odds / (odds + rest)
     return torch.where(known[:, None], mixed, field_rgb)

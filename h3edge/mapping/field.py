@@ -119,15 +119,17 @@ class Field(nn.Module):
     def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
         """RGB (N, 3) in [0, 1] at world points (N, 3) metres: the colour MLP on the texture
         features, composed with the fused colour base where it knows the colour
-        (:func:`~h3edge.mapping.color_base.compose`). ``voxel_index``: each point's leaf voxel (-1
+        (:func:`~h3edge.mapping.color_base.compose`, relative to the MLP's colour at zero features). ``voxel_index``: each point's leaf voxel (-1
         or None: unknown, no warps apply)."""
         if voxel_index is None:  # unknown voxels: no warps apply (identity features only)
             voxel_index = torch.full((len(points),), -1, dtype=torch.long, device=points.device)
-        rgb = self.color_mlp(self.texture(points, voxel_index))
+        features = self.texture(points, voxel_index)
+        rgb = self.color_mlp(features)
         if self.color_base is None or len(self.color_base) == 0 or len(points) == 0:
             return rgb
         base, known = self.color_base.sample(points)
-        return compose(rgb, base.to(rgb.dtype), known)
+        neutral = self.color_mlp(features.new_zeros((1, features.shape[1])))  # what an unlearned cell reads
+        return compose(rgb, base.to(rgb.dtype), known, neutral.to(rgb.dtype))
 
     def sparse_step(self, lr: float) -> None:
         for g in self.hash_grids():
