@@ -119,8 +119,8 @@ class Field(nn.Module):
     def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
         """RGB (N, 3) in [0, 1] at world points (N, 3) metres: the colour MLP on the texture
         features, composed with the fused colour base where it knows the colour
-        (:func:`~h3edge.mapping.color_base.compose`, relative to the MLP's colour at zero features). ``voxel_index``: each point's leaf voxel (-1
-        or None: unknown, no warps apply)."""
+        (:func:`~h3edge.mapping.color_base.compose`, relative to the MLP's colour at zero features).
+        ``voxel_index``: each point's leaf voxel (-1 or None: unknown, no warps apply)."""
         if voxel_index is None:  # unknown voxels: no warps apply (identity features only)
             voxel_index = torch.full((len(points),), -1, dtype=torch.long, device=points.device)
         features = self.texture(points, voxel_index)
