@@ -183,6 +183,9 @@ def test_a_map_saved_with_a_refused_render_floor_loads_with_the_shipped_one(capl
     assert "free_floor" in caplog.text
     saved["render"]["free_floor"] = 0.0  # off stays off
     assert map_settings_from_saved(saved, "old").render.free_floor == 0.0
+    saved["render"]["free_floor"], saved["field"]["beta"] = 0.1, 0.0  # a corrupt header: a clear error
+    with pytest.raises(ProfileError, match="beta"):
+        map_settings_from_saved(saved, "old")
 
 
 def test_profile_errors_name_the_key(tmp_path):

@@ -61,6 +61,8 @@ class FieldConfig:
     def __post_init__(self):
         if not self.grid_cell >= 0:  # refused when the profile loads, not at the first frame
             raise ValueError(f"field.grid_cell must be >= 0 m (0: the leaf voxel), got {self.grid_cell}")
+        if not self.beta > 0:  # the rendering kernel divides by it
+            raise ValueError(f"field.beta must be > 0 truncation units, got {self.beta}")
 
 
 def mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:

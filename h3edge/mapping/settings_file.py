@@ -116,8 +116,10 @@ def map_settings_from_saved(saved: dict, where: str) -> MapSettings:
     render = saved.get("render")
     if isinstance(render, dict) and isinstance(saved.get("field", {}), dict):
         beta = saved.get("field", {}).get("beta", FieldConfig.beta)
-        cfg = section(RenderConfig, render, f"{where}: [render]", unknown="drop")
-        if cfg.free_floor > 0 and isinstance(beta, (int, float)) and floor_window_weight(cfg, beta) >= cfg.min_weight:
+        known = {f.name for f in dataclasses.fields(RenderConfig)}  # the others are warned about once, below
+        cfg = section(RenderConfig, {k: v for k, v in render.items() if k in known}, f"{where}: [render]")
+        if (cfg.free_floor > 0 and isinstance(beta, (int, float)) and beta > 0
+                and floor_window_weight(cfg, beta) >= cfg.min_weight):
             log.warning("%s: render.free_floor = %g lets seen-free space render (D53-7); read as %g", where,
                         cfg.free_floor, SAVED_FREE_FLOOR)
             saved = {**saved, "render": {**render, "free_floor": SAVED_FREE_FLOOR}}
