@@ -54,7 +54,7 @@ import numpy as np
 from benchmarks.mapping import REAL, REPLICA, open_dataset, render_replica, write_comparison
 from benchmarks.tables import markdown_table
 from h3edge.apps.offline import LAST_FRAME, map_sequence
-from h3edge.config import apply_overrides, load_profile, parse_variant
+from h3edge.config import apply_overrides, load_profile, parse_override, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.metrics import mesh_to_mesh
 from h3edge.eval.tsdf import TsdfFusion
@@ -297,17 +297,16 @@ def format_result(r: dict) -> str:
 
 
 def render_variant(spec: str, base: RenderConfig) -> tuple[str, RenderConfig]:
-    """``'LABEL:render.KEY=VALUE;...'`` -> (label, ``base`` with those render settings; values parsed
-    as JSON). Not checked against the rest of the settings as a profile is: a render setting a profile
-    refuses can still be scored on a map, to show what it did (D53-7)."""
+    """``'LABEL:render.KEY=VALUE;...'`` -> (label, ``base`` with those render settings, each parsed by
+    :func:`~h3edge.config.parse_override`). Not checked against the rest of the settings as a profile
+    is: a render setting a profile refuses can still be scored on a map, to show what it did (D53-7)."""
     label, _, sets = spec.partition(":")
     changes = {}
     for item in filter(None, sets.split(";")):
-        key, _, raw = item.partition("=")
-        section, _, name = key.partition(".")
+        section, name, value = parse_override(item)
         if section != "render":
-            raise SystemExit(f"--render-variant {spec!r}: only render.* settings, got {key!r}")
-        changes[name] = json.loads(raw)
+            raise SystemExit(f"--render-variant {spec!r}: only render.* settings, got {item!r}")
+        changes[name] = value
     return label, dataclasses.replace(base, **changes)
 
 

@@ -72,15 +72,21 @@ def load_profile(path: str | Path) -> Profile:
     return Profile(mapping=map_settings(data, str(p)), **kwargs)
 
 
+def parse_override(item: str) -> tuple[str, str, object]:
+    """``'section.key=value'`` -> (section, key, value); the value parsed as JSON, else a string."""
+    key, _, raw = item.partition("=")
+    section, _, name = key.partition(".")
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        value = raw
+    return section, name, value
+
+
 def apply_overrides(settings: MapSettings, overrides: list[str]) -> MapSettings:
-    """``section.key=value`` overrides on :class:`MapSettings` (values parsed as JSON, else strings)."""
+    """``section.key=value`` overrides on :class:`MapSettings` (:func:`parse_override`)."""
     for item in overrides:
-        key, _, raw = item.partition("=")
-        section, _, name = key.partition(".")
-        try:
-            value = json.loads(raw)
-        except ValueError:
-            value = raw
+        section, name, value = parse_override(item)
         sub = getattr(settings, section)
         settings = dataclasses.replace(settings, **{section: dataclasses.replace(sub, **{name: value})})
     return settings

@@ -156,10 +156,11 @@ class MapSettings:
     def __post_init__(self) -> None:
         self.votes.cells_per_side(self.voxels.voxel_size)  # refused when the profile loads, not at the first frame
         r = self.render
-        if r.free_floor > 0 and floor_window_weight(r, self.field.beta) >= r.min_weight:
+        weight = floor_window_weight(r, self.field.beta)
+        if r.free_floor > 0 and weight >= r.min_weight:
             raise ValueError(f"render.free_floor = {r.free_floor:g} lets a window of seen-free samples render: its "
-                             f"weight {floor_window_weight(r, self.field.beta):.3f} reaches render.min_weight = "
-                             f"{r.min_weight:g} (field.beta = {self.field.beta:g}); raise the floor")
+                             f"weight {weight:.3f} reaches render.min_weight = {r.min_weight:g} "
+                             f"(field.beta = {self.field.beta:g}); raise the floor")
 
 
 @dataclass
