@@ -7,8 +7,9 @@ skipped (counted). Both methods are scored on the same held-out views (``--views
 evenly spread) at fixed wall-clock checkpoints: every ``--every-s`` seconds while frames arrive,
 at the last frame, and ``--still-s`` seconds after the last frame arrived (the robot standing
 still). Scores: PSNR, SSIM, Depth L1, the share of valid pixels rendered more than 5 cm in front
-of / behind the sensor depth, and the TSDF surface farther than 5 cm from h3edge's mesh (holes),
-against the TSDF's mesh at the same checkpoint.
+of / behind the sensor depth, the TSDF surface farther than 5 cm from h3edge's mesh (holes) and
+h3edge's mesh farther than 5 cm from the TSDF's (stray surface), against the TSDF's mesh at the
+same checkpoint.
 
 Datasets (``--datasets``): ``sim`` and ``studio`` (the simulated scenes, trajectories faster than
 a hand-held camera's), ``loft`` (the photographic scene at a hand-held pace), ``replica`` (Replica
@@ -89,15 +90,17 @@ def pick_views(held: list, n: int) -> list:
 
 def score(renderer, views: list, threshold: float, mesh=None, reference=None) -> dict:
     """Held-out view scores of ``renderer``; with ``mesh`` and ``reference``, the share of the
-    reference surface farther than ``threshold`` from ``mesh`` (holes)."""
+    reference surface farther than ``threshold`` from ``mesh`` (holes) and of ``mesh`` farther than
+    ``threshold`` from the reference (stray surface)."""
     v = evaluate_views(renderer, views, 1, len(views), threshold)
     out = {"psnr_db": v["psnr_db"], "ssim": v["ssim"], "depth_l1_cm": v["depth_l1_cm"],
            "front_pct": 100 * v["front_share"], "behind_pct": 100 * v["behind_share"]}
     if mesh is not None and reference is not None and len(reference.faces):
         if len(mesh.faces) == 0:
-            out["holes_pct"] = 100.0
+            out["holes_pct"], out["stray_pct"] = 100.0, 0.0
         else:
-            out["holes_pct"] = 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["b_to_a_far_share"]
+            d = mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)
+            out["holes_pct"], out["stray_pct"] = 100 * d["b_to_a_far_share"], 100 * d["a_to_b_far_share"]
     return out
 
 
@@ -208,7 +211,7 @@ COLUMNS = [("checkpoint", lambda r: r["checkpoint"], None), ("method", lambda r:
            ("PSNR [dB]", lambda r: r.get("psnr_db"), 2), ("SSIM", lambda r: r.get("ssim"), 3),
            ("Depth L1 [cm]", lambda r: r.get("depth_l1_cm"), 2),
            ("off in front [%]", lambda r: r.get("front_pct"), 2), ("off behind [%]", lambda r: r.get("behind_pct"), 2),
-           ("holes [%]", lambda r: r.get("holes_pct"), 1)]
+           ("holes [%]", lambda r: r.get("holes_pct"), 1), ("stray [%]", lambda r: r.get("stray_pct"), 1)]
 
 
 def plot(result: dict, path: Path) -> None:

@@ -35,7 +35,7 @@ from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slic
 from h3edge.mapping.engine import FrameResult, MapSettings, synthetic_map
 from h3edge.mapping.engine import MapEngine as _Engine
 from h3edge.mapping.map_file import map_record, read_map, write_checkpoint
-from h3edge.mapping.mesh import working_bytes
+from h3edge.mapping.mesh import fill_scratch_bytes, working_bytes
 from h3edge.mapping.onnx_decoders import DecoderRuntime, InferenceConfig
 from h3edge.mapping.settings_file import map_settings_from_profile
 from h3edge.mapping.view import MapView
@@ -124,9 +124,11 @@ class MapSnapshot:
     def mesh_scratch_bytes(self, resolution: int | None = None, aabb=None) -> int:
         """Peak scratch bytes :meth:`mesh` with these arguments would take, before the mesh itself:
         what a caller checks against a memory budget before asking."""
-        res = self._view.mesh_resolution if resolution is None else int(resolution)
-        return working_bytes(self._view.voxels.voxel_keys, self._view.voxel_size, res,
-                             None if aabb is None else _aabb(aabb))
+        view = self._view
+        res = view.mesh_resolution if resolution is None else int(resolution)
+        base = view.field.color_base if view.mesh_min_support > 0 else None  # fills the cubes left out
+        return (working_bytes(view.voxels.voxel_keys, view.voxel_size, res, None if aabb is None else _aabb(aabb))
+                + fill_scratch_bytes(0 if base is None else len(base)))
 
 
 class Mapper:

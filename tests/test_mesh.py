@@ -1,8 +1,10 @@
-"""Mesh extraction on an analytic sphere: radius error, orientation, colours, AABB cut."""
+"""Mesh extraction on an analytic sphere: radius error, orientation, colours, AABB cut; the fused
+base's sparse-cell surface and where it fills a mesh's unsupported cubes."""
 
 import numpy as np
+import trimesh
 
-from h3edge.mapping.mesh import extract_mesh
+from h3edge.mapping.mesh import SURFACE_BLOCK, cells_surface, extract_mesh, left_out_surface
 from tests.helpers import voxels_near_surface
 
 C = np.array([0.03, -0.02, 0.05])
@@ -45,3 +47,50 @@ def test_empty_inputs():
     assert len(extract_mesh(np.zeros(0, np.int64), VOX, sphere).faces) == 0
     far = voxels_near_surface(lambda p: np.ones(len(p)), np.array([[0, 0, 0], [0.3, 0.3, 0.3]]), VOX, 0.05)
     assert len(far) == 0
+
+
+def sphere_cells(cell: float, band: float):
+    """Cells (ijk, SDF at their centres) within ``band`` m of the sphere, as a fused base holds."""
+    lo, hi = np.floor((C - R - 0.05) / cell).astype(int), np.ceil((C + R + 0.05) / cell).astype(int)
+    ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
+    d = sphere((ijk + 0.5) * cell)
+    near = np.abs(d) < band
+    return ijk[near], d[near].astype(np.float32)
+
+
+def test_cells_surface_is_the_closed_sphere_across_blocks():
+    cell = 0.01
+    ijk, d = sphere_cells(cell, 3 * cell)
+    assert np.ptp(np.floor_divide(ijk, SURFACE_BLOCK), axis=0).min() >= 2  # spans several blocks a side
+    verts, faces = cells_surface(ijk, d, cell)
+    mesh = trimesh.Trimesh(verts, faces, process=True)  # merges nothing the block seams left apart
+    assert len(mesh.vertices) == len(verts)
+    assert mesh.is_watertight
+    assert np.abs(np.linalg.norm(verts - C, axis=1) - R).max() < 0.1 * cell
+    cut = d.copy()
+    cut[(ijk[:, 0] + 0.5) * cell > C[0]] = np.nan  # a cube with a corner not held is not meshed
+    v, f = cells_surface(ijk, cut, cell)
+    assert 0 < len(f) < len(faces) and v[:, 0].max() <= C[0]
+    assert len(cells_surface(ijk, d, cell, lambda blocks: np.zeros(len(blocks), bool))[1]) == 0
+
+
+def test_left_out_surface_fills_only_the_cubes_the_mesh_leaves_out():
+    cell, res = 0.01, 5
+    ijk, d = sphere_cells(cell, 3 * cell)
+    keys = sphere_voxels()
+
+    def support(p):  # evidence only on the +x side
+        return (p[:, 0] > C[0]).astype(float)
+
+    field = extract_mesh(keys, VOX, sphere, res, support_fn=support, min_support=0.25)
+    verts, faces = left_out_surface(ijk, d, cell, keys, VOX, res, support, 0.25)
+    fill = trimesh.Trimesh(verts, faces, process=False)
+    assert field.vertices[:, 0].min() >= C[0] - 1e-9 and len(field.faces)
+    # the fill lies on the sphere, on the side without evidence, up to the lattice cube at the cut
+    assert np.abs(np.linalg.norm(verts - C, axis=1) - R).max() < 0.1 * cell
+    assert fill.triangles_center[:, 0].max() < C[0] + VOX / res
+    both = field.area + fill.area
+    assert abs(both - 4 * np.pi * R ** 2) / (4 * np.pi * R ** 2) < 0.03
+    assert len(left_out_surface(ijk, d, cell, keys, VOX, res, support, 0.0)[1]) == 0  # nothing left out
+    everywhere = left_out_surface(ijk, d, cell, keys, VOX, res, lambda p: np.ones(len(p)), 0.25)
+    assert len(everywhere[1]) == 0

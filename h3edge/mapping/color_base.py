@@ -153,6 +153,17 @@ class ColorBase:
             sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
         return out, known
 
+    def distance_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cells in use as integer coordinates (N, 3) int64 (centre ``(ijk + 1/2) * cell`` m) and
+        their fused signed distance (N,) float32 m, NaN where a cell holds none (host copies)."""
+        from h3edge.mapping.voxels import unpack
+
+        keys, cells = self.keys, self.cells  # one consistent pair while a frame may be fused
+        n = min(self.n, len(keys), len(cells))
+        dist = cells[:n, 4].copy()
+        dist[~(cells[:n, 3] > 0)] = np.nan
+        return unpack(keys[:n]), dist
+
     def state_dict(self) -> dict[str, np.ndarray]:
         """The cells in use as host arrays (keys int64 (N,), rgb float32 (N, 3) in [0, 1], weight
         float32 (N,), signed distance float32 (N,) m) and the refused count; what a checkpoint holds

@@ -79,12 +79,19 @@ def extract_mesh(voxel_keys: np.ndarray, voxel_size: float, sdf_fn: SdfFn, resol
     if len(parts) > 1:
         verts, faces = _merge_chunk_faces(verts, faces, voxel_size * MESH_CHUNK, voxel_size / resolution * 1e-3)
     mesh = trimesh.Trimesh(verts, faces, process=False)  # normals point to positive SDF (tested)
-    if color_fn is not None and len(verts):
-        rgb = np.concatenate([color_fn(verts[s:s + batch]) for s in range(0, len(verts), batch)])
-        rgba = np.concatenate([np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8),
-                               np.full((len(verts), 1), 255, np.uint8)], 1)
-        mesh.visual.vertex_colors = rgba
+    if color_fn is not None:
+        paint(mesh, color_fn, batch)
     return mesh
+
+
+def paint(mesh: trimesh.Trimesh, color_fn: ColorFn, batch: int = 262_144) -> None:
+    """Vertex colours of ``mesh`` from ``color_fn`` at its vertices, ``batch`` at a time (in place)."""
+    verts = np.asarray(mesh.vertices)
+    if len(verts) == 0:
+        return
+    rgb = np.concatenate([color_fn(verts[s:s + batch]) for s in range(0, len(verts), batch)])
+    mesh.visual.vertex_colors = np.concatenate([np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8),
+                                                np.full((len(verts), 1), 255, np.uint8)], 1)
 
 
 def _merge_chunk_faces(verts: np.ndarray, faces: np.ndarray, chunk: float, tol: float
@@ -155,3 +162,144 @@ def _chunk_surface(ijk: np.ndarray, voxel_size: float, sdf_fn: SdfFn, r: int, ba
     except RuntimeError:  # "No surface found": the sign changes only outside the enabled cubes
         return None
     return verts + origin * voxel_size, faces
+
+
+SURFACE_BLOCK = 32  # cells per block edge: the fused base's marching cubes runs block by block
+_CUBE_CORNERS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)])  # a cube's 8 corners
+
+
+def cells_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float,
+                  keep_block: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) float64 metres, faces (F, 3) int64): the zero level set of ``values`` (N,)
+    (positive outside; NaN: not held) held at the centres ``(ijk + 1/2) * cell`` of sparse cells
+    ``cell_ijk`` (N, 3) int, over every cube of 8 held centres, as TSDF fusion meshes its blocks
+    (filling a missing corner from its neighbours was measured and rejected, D53-9). Runs block
+    by block (``SURFACE_BLOCK`` cells a side, scratch of one block); ``keep_block(block_ijk (B, 3))
+    -> (B,) bool`` picks the blocks meshed (default: all). Vertices on block faces are merged."""
+    from h3edge.mapping.voxels import pack
+
+    held = np.isfinite(values)
+    ijk, vals = np.asarray(cell_ijk, np.int64)[held], np.asarray(values, np.float32)[held]
+    empty = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
+    if len(ijk) < 8:
+        return empty
+    b = SURFACE_BLOCK
+    block = np.floor_divide(ijk, b)
+    local = ijk - block * b
+    # a cell on a block's lower face is also the upper halo of the block below it
+    parts = []
+    for o in _CUBE_CORNERS:
+        sel = np.flatnonzero(np.all((local == 0) | (o == 0), axis=1))
+        parts.append((block[sel] - o, local[sel] + o * b, vals[sel]))
+    e_block = np.concatenate([p[0] for p in parts])
+    e_local = np.concatenate([p[1] for p in parts])
+    e_val = np.concatenate([p[2] for p in parts])
+    uniq, inv = np.unique(pack(e_block), return_inverse=True)
+    inv = inv.reshape(-1)
+    blocks = unpack(uniq)
+    wanted = np.ones(len(uniq), bool) if keep_block is None else np.asarray(keep_block(blocks), bool)
+    order = np.argsort(inv, kind="stable")
+    bounds = np.searchsorted(inv[order], np.arange(len(uniq) + 1))
+    verts, faces, n = [], [], 0
+    vol = np.empty((b + 1,) * 3, np.float32)
+    for g in np.flatnonzero(wanted):
+        rows = order[bounds[g]:bounds[g + 1]]
+        if len(rows) < 8:
+            continue
+        vol.fill(np.nan)
+        loc = e_local[rows]
+        vol[loc[:, 0], loc[:, 1], loc[:, 2]] = e_val[rows]
+        ok = np.isfinite(vol)
+        cube = ok[1:, 1:, 1:] & ok[:-1, 1:, 1:] & ok[1:, :-1, 1:] & ok[1:, 1:, :-1]
+        cube &= ok[:-1, :-1, 1:] & ok[:-1, 1:, :-1] & ok[1:, :-1, :-1] & ok[:-1, :-1, :-1]
+        if not cube.any():
+            continue
+        mask = np.zeros(vol.shape, bool)
+        mask[1:, 1:, 1:] = cube  # scikit-image's mask[p] enables the cube whose upper corner is p
+        filled = np.where(ok, vol, np.float32(1.0))
+        if not (filled[ok].min() < 0 < filled[ok].max()):
+            continue
+        try:
+            v, f, _, _ = marching_cubes(filled, level=0.0, mask=mask, allow_degenerate=True)
+        except RuntimeError:  # the sign changes only outside the enabled cubes
+            continue
+        verts.append(v + blocks[g] * b)
+        faces.append(f + n)
+        n += len(v)
+    if not verts:
+        return empty
+    v, f = np.concatenate(verts).astype(np.float64), np.concatenate(faces).astype(np.int64)
+    if len(verts) > 1:
+        v, f = _merge_chunk_faces(v, f, float(b), 1e-3)
+    return (v + 0.5) * cell, f
+
+
+def left_out_cubes(points: np.ndarray, voxel_keys: np.ndarray, voxel_size: float, resolution: int,
+                   support_fn: SupportFn, min_support: float, batch: int = 1 << 18) -> np.ndarray:
+    """(N,) bool: whether the lattice cube of :func:`extract_mesh` (``resolution`` cubes per voxel
+    edge) holding each point (N, 3) m lies in one of ``voxel_keys`` and was left out of its mesh
+    for lack of support (a lattice point under ``min_support``). ``batch`` points at a time."""
+    from h3edge.mapping.voxels import lookup, pack
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros(len(pts), bool)
+    if min_support <= 0:
+        return out
+    spacing = voxel_size / resolution
+    region = np.sort(voxel_keys)
+    for s in range(0, len(pts), batch):
+        cubes, of_point = np.unique(pack(np.floor(pts[s:s + batch] / spacing).astype(np.int64)), return_inverse=True)
+        q = unpack(cubes)
+        inside = np.flatnonzero(lookup(region, pack(np.floor_divide(q, resolution))) >= 0)
+        if len(inside) == 0:
+            continue
+        corners, of_corner = np.unique(pack((q[inside, None, :] + _CUBE_CORNERS).reshape(-1, 3)), return_inverse=True)
+        low = support_fn(unpack(corners) * spacing) < min_support
+        left = np.zeros(len(cubes), bool)
+        left[inside] = low[of_corner.reshape(-1)].reshape(-1, 8).any(1)
+        out[s:s + batch] = left[of_point.reshape(-1)]
+    return out
+
+
+def fill_scratch_bytes(n_cells: int) -> int:
+    """Peak scratch memory of :func:`left_out_surface` over a base of ``n_cells`` cells (the copies
+    of their coordinates and distances, their centres, block keys and marks; a batch of
+    :func:`left_out_cubes`; one block's volume), before the surface itself."""
+    return 96 * n_cells + 48 * (1 << 18) + 12 * (SURFACE_BLOCK + 1) ** 3 if n_cells else 0
+
+
+def left_out_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float, voxel_keys: np.ndarray,
+                     voxel_size: float, resolution: int, support_fn: SupportFn, min_support: float,
+                     aabb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) metres, faces (F, 3)): the surface of a fused base (:func:`cells_surface` of
+    ``values`` at cells ``cell_ijk`` of side ``cell`` m) where :func:`extract_mesh` of the same
+    voxels (optionally cut to ``aabb``), ``resolution`` and support left its lattice cubes out: the
+    faces whose centroid lies in such a cube (:func:`left_out_cubes`). Where the map's priors
+    carry no evidence yet, a mesh shows the surface the frames fused there, as a render does."""
+    from h3edge.mapping.voxels import pack
+
+    empty = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
+    region = pack(_region(voxel_keys, voxel_size, aabb))
+    if len(region) == 0 or len(cell_ijk) == 0 or min_support <= 0:
+        return empty
+    ijk = np.asarray(cell_ijk, np.int64)
+    left = left_out_cubes((ijk + 0.5) * cell, region, voxel_size, resolution, support_fn, min_support)
+    left &= np.isfinite(values)
+    if not left.any():
+        return empty
+    # the blocks owning a base cube with a corner in a left-out lattice cube (every base cube that
+    # overlaps a lattice cube has a corner inside it)
+    near = ijk[left]
+    owners = np.unique(np.concatenate([pack(np.floor_divide(near - o, SURFACE_BLOCK)) for o in _CUBE_CORNERS]))
+    # the cells of those blocks and of the blocks whose lower faces are their halo
+    of_block = pack(np.floor_divide(ijk, SURFACE_BLOCK))
+    keep = np.isin(of_block, np.unique(np.concatenate([pack(unpack(owners) + o) for o in _CUBE_CORNERS])))
+    verts, faces = cells_surface(ijk[keep], np.asarray(values)[keep], cell,
+                                 lambda blocks: np.isin(pack(blocks), owners))
+    if len(faces) == 0:
+        return empty
+    faces = faces[left_out_cubes(verts[faces].mean(1), region, voxel_size, resolution, support_fn, min_support)]
+    used, faces = np.unique(faces, return_inverse=True)
+    return verts[used], faces.reshape(-1, 3)
+
+

@@ -10,6 +10,7 @@ a copy can carry ONNX-exported decoders run by onnxruntime (:mod:`h3edge.mapping
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -20,7 +21,7 @@ from h3edge.geometry.camera import Intrinsics, rigid_error
 from h3edge.mapping.cell_votes import CellVotes
 from h3edge.mapping.field import Field
 from h3edge.mapping.free_space import FreeSpace
-from h3edge.mapping.mesh import extract_mesh
+from h3edge.mapping.mesh import extract_mesh, left_out_surface, paint
 from h3edge.mapping.onnx_decoders import DecoderRuntime
 from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig, free_floor_fn
 from h3edge.mapping.voxels import VoxelMap
@@ -140,26 +141,72 @@ class MapView:
         keys = self.voxels.voxel_keys
         of_block = np.floor_divide(unpack(keys), block_voxels)
         lookup = PriorLookup(self.voxels)
+        near_block = self._base_cells_by_block(block_voxels)
         out = []
         for b in np.asarray(blocks).reshape(-1, 3):
             mine = keys[np.all(of_block == b, axis=1)]
-            out.append(self.mesh(resolution, voxel_keys=mine, lookup=lookup) if len(mine) else trimesh.Trimesh())
+            out.append(self.mesh(resolution, voxel_keys=mine, lookup=lookup, base_cells=near_block(b))
+                       if len(mine) else trimesh.Trimesh())
         return out
+
+    def _base_cells(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The fused base's cells and distances (:meth:`ColorBase.distance_cells`) where a mesh
+        fills the cubes it leaves out with them; None where it does not."""
+        base = self.field.color_base
+        if base is None or len(base) == 0 or self.mesh_min_support <= 0:
+            return None
+        return base.distance_cells()
+
+    def _base_cells_by_block(self, block_voxels: int) -> Callable[[np.ndarray], tuple | None]:
+        """``f(block (3,)) ->`` the base's cells in that block of ``block_voxels`` voxels and its 26
+        neighbours (the cubes at its faces read cells across them), one sort for every block."""
+        from h3edge.mapping.voxels import pack
+
+        cells = self._base_cells()
+        if cells is None:
+            return lambda b: None
+        ijk, dist = cells
+        scale = self.field.color_base.cfg.cell / (self.voxel_size * block_voxels)
+        of_block = pack(np.floor((ijk + 0.5) * scale).astype(np.int64))
+        order = np.argsort(of_block, kind="stable")
+        ordered = of_block[order]
+        around = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+        def near(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            want = pack(np.asarray(block, np.int64)[None] + around)
+            lo, hi = np.searchsorted(ordered, want), np.searchsorted(ordered, want, side="right")
+            rows = order[np.concatenate([np.arange(a, z) for a, z in zip(lo, hi)])]
+            return ijk[rows], dist[rows]
+
+        return near
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
              prior_margin: float | None = 1.0, voxel_keys: np.ndarray | None = None,
-             lookup: PriorLookup | None = None) -> trimesh.Trimesh:
+             lookup: PriorLookup | None = None, base_cells: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> trimesh.Trimesh:
         """Marching-cubes mesh of the map, vertex colours from the colour field. The residual MLP is
         evaluated at lattice points whose prior is within ``prior_margin`` truncation units of the
         surface (None: everywhere), where the zero crossing can be. Cubes whose lattice points lack
-        observed priors (support under ``mesh_min_support``) are left out. ``voxel_keys``: mesh only
-        these voxels; ``lookup``: this view's :class:`PriorLookup`, when the caller has one."""
+        observed priors (support under ``mesh_min_support``) are left out of the field's surface
+        and take the fused base's there (:func:`~h3edge.mapping.mesh.left_out_surface`, D53-9).
+        ``voxel_keys``: mesh only these voxels; ``lookup``: this view's :class:`PriorLookup`, when
+        the caller has one; ``base_cells``: the base's cells to read (default: all of them)."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
         lookup = lookup or PriorLookup(self.voxels)
         margin = np.inf if prior_margin is None else prior_margin
         keys = self.voxels.voxel_keys if voxel_keys is None else voxel_keys
-        return extract_mesh(keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup),
-                            resolution or self.mesh_resolution,
-                            (lambda x: self.color_np(x, lookup)) if color else None, aabb=aabb,
-                            support_fn=lookup.support, min_support=self.mesh_min_support)
+        res = resolution or self.mesh_resolution
+        mesh = extract_mesh(keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup), res, None,
+                            aabb=aabb, support_fn=lookup.support, min_support=self.mesh_min_support)
+        cells = self._base_cells() if base_cells is None else base_cells
+        if cells is not None and len(cells[0]):
+            # where the priors carry no evidence yet the mesh shows the fused base's surface (D53-9)
+            verts, faces = left_out_surface(*cells, self.field.color_base.cfg.cell, keys, self.voxel_size, res,
+                                            lookup.support, self.mesh_min_support, aabb)
+            if len(faces):
+                v, f = np.asarray(mesh.vertices).reshape(-1, 3), np.asarray(mesh.faces).reshape(-1, 3)
+                mesh = trimesh.Trimesh(np.concatenate([v, verts]), np.concatenate([f, faces + len(v)]), process=False)
+        if color:
+            paint(mesh, lambda x: self.color_np(x, lookup))
+        return mesh
