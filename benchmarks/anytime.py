@@ -7,9 +7,10 @@ skipped (counted). Both methods are scored on the same held-out views (``--views
 evenly spread) at fixed wall-clock checkpoints: every ``--every-s`` seconds while frames arrive,
 at the last frame, and ``--still-s`` seconds after the last frame arrived (the robot standing
 still). Scores: PSNR, SSIM, Depth L1, the share of valid pixels rendered more than 5 cm in front
-of / behind the sensor depth, the TSDF surface farther than 5 cm from h3edge's mesh (holes) and
-h3edge's mesh farther than 5 cm from the TSDF's (stray surface), against the TSDF's mesh at the
-same checkpoint.
+of / behind the sensor depth, the TSDF surface farther than 5 cm from h3edge's mesh (holes,
+against the TSDF's mesh at the same checkpoint) and each method's mesh farther than 5 cm from the
+scene's own mesh where it has one (the simulated scenes' ``gt_mesh.ply``), else h3edge's farther
+than 5 cm from the TSDF's (stray surface).
 
 Datasets (``--datasets``): ``sim`` and ``studio`` (the simulated scenes, trajectories faster than
 a hand-held camera's), ``loft`` (the photographic scene at a hand-held pace), ``replica`` (Replica
@@ -51,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from benchmarks.mapping import REAL, REPLICA, open_dataset, render_replica, write_comparison
 from benchmarks.tables import markdown_table
@@ -88,10 +90,11 @@ def pick_views(held: list, n: int) -> list:
     return [held[int(i)] for i in np.unique(idx)]
 
 
-def score(renderer, views: list, threshold: float, mesh=None, reference=None) -> dict:
+def score(renderer, views: list, threshold: float, mesh=None, reference=None, truth=None) -> dict:
     """Held-out view scores of ``renderer``; with ``mesh`` and ``reference``, the share of the
     reference surface farther than ``threshold`` from ``mesh`` (holes) and of ``mesh`` farther than
-    ``threshold`` from the reference (stray surface)."""
+    ``threshold`` from ``truth`` (the scene's own mesh) where given, else from the reference (stray
+    surface)."""
     v = evaluate_views(renderer, views, 1, len(views), threshold)
     out = {"psnr_db": v["psnr_db"], "ssim": v["ssim"], "depth_l1_cm": v["depth_l1_cm"],
            "front_pct": 100 * v["front_share"], "behind_pct": 100 * v["behind_share"]}
@@ -99,15 +102,23 @@ def score(renderer, views: list, threshold: float, mesh=None, reference=None) ->
         if len(mesh.faces) == 0:
             out["holes_pct"], out["stray_pct"] = 100.0, 0.0
         else:
-            d = mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)
-            out["holes_pct"], out["stray_pct"] = 100 * d["b_to_a_far_share"], 100 * d["a_to_b_far_share"]
+            out["holes_pct"] = 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["b_to_a_far_share"]
+            out["stray_pct"] = stray_pct(mesh, reference if truth is None else truth, threshold)
+    elif mesh is not None and truth is not None and len(mesh.faces):
+        out["stray_pct"] = stray_pct(mesh, truth, threshold)
     return out
 
 
+def stray_pct(mesh, reference, threshold: float) -> float:
+    """The share [%] of ``mesh``'s surface farther than ``threshold`` from ``reference``'s."""
+    return 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["a_to_b_far_share"]
+
+
 def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], views: list, threshold: float,
-                voxel: float) -> tuple[list[dict], dict]:
+                voxel: float, truth=None) -> tuple[list[dict], dict]:
     """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, and a
-    summary with the meshes at each checkpoint label."""
+    summary with the meshes at each checkpoint label. ``truth``: the scene's mesh its stray
+    surface is scored against."""
     fusion = TsdfFusion(frames[0].intrinsics, voxel)
     rows, meshes, pending = [], {}, list(marks)
     free_at, k, skipped, times = 0.0, 0, 0, []
@@ -123,7 +134,7 @@ def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], vi
                 continue
             mesh = fusion.mesh()
             meshes[mark.label] = mesh
-            scores = score(MeshRenderer(mesh), views, threshold) if len(mesh.faces) else {}
+            scores = score(MeshRenderer(mesh), views, threshold, mesh, truth=truth) if len(mesh.faces) else {}
             rows.append({"checkpoint": mark.label, "t_s": t if last else mark.t, "frames_integrated": fusion.frames,
                          "skipped": skipped, **scores})
             last = False
@@ -160,7 +171,7 @@ def warm_up(frames: list, settings) -> None:
 
 def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Checkpoint], views: list,
                   threshold: float, references: dict, mode: str, picture: tuple | None = None,
-                  renders: dict | None = None) -> tuple[list[dict], dict, MapEngine]:
+                  renders: dict | None = None, truth=None) -> tuple[list[dict], dict, MapEngine]:
     """h3edge's replay in real time through :func:`~h3edge.apps.offline.map_sequence` (``mode``
     live or inline, as the module says); rows per checkpoint, a summary, and the mapper at the end.
     ``picture``: (sequence, path) of the held-out renders beside the TSDF's at the last frame.
@@ -180,10 +191,10 @@ def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Che
             if mapper.field is not None:
                 view = mapper.view()
                 view.render_cfg = cfg
-                other.update(score(view, views, threshold, view.mesh(), references.get(label)))
+                other.update(score(view, views, threshold, view.mesh(), references.get(label), truth))
             render_rows[name].append(other)
         if mapper.field is not None:
-            row.update(score(mapper, views, threshold, mapper.mesh(), references.get(label)))
+            row.update(score(mapper, views, threshold, mapper.mesh(), references.get(label), truth))
             if label == "last frame" and picture is not None:
                 write_comparison(picture[0], [mapper], MeshRenderer(references[label]), picture[1], threshold)
         rows.append(row)
@@ -256,7 +267,9 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     marks = checkpoints(len(frames), hz, args.every_s, args.still_s)
     log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), hz, len(views),
              [m.label for m in marks])
-    tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel)
+    gt = Path(getattr(seq, "root", "")) / "gt_mesh.ply"  # the simulated scenes' own mesh
+    truth = trimesh.load(gt, process=False) if getattr(seq, "root", None) is not None and gt.is_file() else None
+    tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel, truth)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs = {tsdf_label: tsdf_rows}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
@@ -267,7 +280,7 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
         shown = mode == "live" and st is settings  # the profile's own live run
         rows, summary, mapper = replay_h3edge(frames, st, hz, args.queue, marks, views, threshold,
                                               tsdf["meshes"], mode, (seq, picture) if shown else None,
-                                              renders if shown else None)
+                                              renders if shown else None, truth)
         if not args.components:
             del summary["components"]
         runs[label], summaries[label] = rows, summary

@@ -24,6 +24,7 @@ def test_anytime_replay_scores_both_methods_at_every_checkpoint(tiny_scene, tmp_
         assert [row["checkpoint"] for row in rows] == labels, method
         last = rows[1]
         assert last["frames_integrated"] + last["skipped"] <= r["frames"] and last["psnr_db"] > 0
+        assert 0 <= last["stray_pct"] < 5, method  # both meshes scored against the scene's own
     live = r["summaries"]["h3edge live"]
     assert live["training_steps"]["frame"] == 0 and live["training_steps"]["between_frames"] > 0
     assert live["frames_integrated"] + live["skipped"] + live["dropped"] == r["frames"]
