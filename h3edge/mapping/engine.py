@@ -114,7 +114,8 @@ class MapperConfig:
     """marching-cubes cells per voxel edge; authors 8 (1.25 cm at 10 cm voxels)"""
     mesh_min_support: float = 0.0
     """share of each mesh cube's trilinear weight that must lie on vertices whose prior a frame set (and within
-    voxels.observed_behind of a seen surface); authors 0 (every allocated voxel); D0-3"""
+    voxels.observed_behind of a seen surface), else the cube shows the colour base's fused surface if any (D53-9);
+    authors 0 (every allocated voxel); D0-3"""
     train_between_frames: bool = False
     """train on a thread of its own, every frame integrated as it comes (false: each frame trains inline with
     ``iterations`` steps); paper false (per-frame mapping); D53-1"""

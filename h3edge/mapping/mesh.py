@@ -301,5 +301,3 @@ def left_out_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float, voxe
     faces = faces[left_out_cubes(verts[faces].mean(1), region, voxel_size, resolution, support_fn, min_support)]
     used, faces = np.unique(faces, return_inverse=True)
     return verts[used], faces.reshape(-1, 3)
-
-
