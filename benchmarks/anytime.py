@@ -59,7 +59,7 @@ from benchmarks.tables import markdown_table
 from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.config import apply_overrides, load_profile, parse_override, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
-from h3edge.eval.metrics import mesh_to_mesh
+from h3edge.eval.metrics import far_share_from, mesh_to_mesh
 from h3edge.eval.tsdf import TsdfFusion
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.engine import MapEngine
@@ -93,8 +93,8 @@ def pick_views(held: list, n: int) -> list:
 def score(renderer, views: list, threshold: float, mesh=None, reference=None, truth=None) -> dict:
     """Held-out view scores of ``renderer``; with ``mesh`` and ``reference``, the share of the
     reference surface farther than ``threshold`` from ``mesh`` (holes) and of ``mesh`` farther than
-    ``threshold`` from ``truth`` (the scene's own mesh) where given, else from the reference (stray
-    surface)."""
+    ``threshold`` from the scene's own mesh where ``truth`` scores it (``far_share_from`` that
+    mesh), else from the reference (stray surface)."""
     v = evaluate_views(renderer, views, 1, len(views), threshold)
     out = {"psnr_db": v["psnr_db"], "ssim": v["ssim"], "depth_l1_cm": v["depth_l1_cm"],
            "front_pct": 100 * v["front_share"], "behind_pct": 100 * v["behind_share"]}
@@ -102,23 +102,19 @@ def score(renderer, views: list, threshold: float, mesh=None, reference=None, tr
         if len(mesh.faces) == 0:
             out["holes_pct"], out["stray_pct"] = 100.0, 0.0
         else:
-            out["holes_pct"] = 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["b_to_a_far_share"]
-            out["stray_pct"] = stray_pct(mesh, reference if truth is None else truth, threshold)
+            d = mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)
+            out["holes_pct"] = 100 * d["b_to_a_far_share"]
+            out["stray_pct"] = 100 * (d["a_to_b_far_share"] if truth is None else truth(mesh))
     elif mesh is not None and truth is not None and len(mesh.faces):
-        out["stray_pct"] = stray_pct(mesh, truth, threshold)
+        out["stray_pct"] = 100 * truth(mesh)
     return out
-
-
-def stray_pct(mesh, reference, threshold: float) -> float:
-    """The share [%] of ``mesh``'s surface farther than ``threshold`` from ``reference``'s."""
-    return 100 * mesh_to_mesh(mesh, reference, MESH_POINTS, threshold)["a_to_b_far_share"]
 
 
 def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], views: list, threshold: float,
                 voxel: float, truth=None) -> tuple[list[dict], dict]:
     """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, and a
-    summary with the meshes at each checkpoint label. ``truth``: the scene's mesh its stray
-    surface is scored against."""
+    summary with the meshes at each checkpoint label. ``truth``: scores the stray surface against
+    the scene's own mesh (:func:`score`)."""
     fusion = TsdfFusion(frames[0].intrinsics, voxel)
     rows, meshes, pending = [], {}, list(marks)
     free_at, k, skipped, times = 0.0, 0, 0, []
@@ -268,7 +264,8 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     log.info("%s: %d frames at %g Hz, %d views, checkpoints %s", name, len(frames), hz, len(views),
              [m.label for m in marks])
     gt = Path(getattr(seq, "root", "")) / "gt_mesh.ply"  # the simulated scenes' own mesh
-    truth = trimesh.load(gt, process=False) if getattr(seq, "root", None) is not None and gt.is_file() else None
+    truth = (far_share_from(trimesh.load(gt, process=False), MESH_POINTS, threshold)
+             if getattr(seq, "root", None) is not None and gt.is_file() else None)
     tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel, truth)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs = {tsdf_label: tsdf_rows}

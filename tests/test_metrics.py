@@ -11,6 +11,7 @@ from h3edge.eval.metrics import (
     depth_error_map,
     depth_error_shares,
     depth_l1,
+    far_share_from,
     mesh_to_mesh,
     psnr,
     sample_surface,
@@ -140,6 +141,9 @@ def test_mesh_to_mesh_both_directions():
     assert same["a_to_b_mean"] < 0.01 and same["a_to_b_far_share"] == 0.0
     shifted = mesh_to_mesh(b, a, n=20000)
     assert 0.2 < shifted["a_to_b_far_share"] < 0.45  # most of top and bottom are 10 cm off
+    from_a = far_share_from(a, n=20000, threshold=0.05)  # one tree for every mesh: the same answers
+    assert from_a(b) == shifted["a_to_b_far_share"] and from_a(a) == 0.0
+    assert from_a(trimesh.Trimesh()) == 1.0
 
 
 def test_a_large_covered_surface_reads_covered_whatever_the_sample_count():

@@ -6,6 +6,8 @@ Images are uint8 RGB or float; ``data_range`` is 255 for uint8 input, 1 for floa
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
@@ -121,6 +123,20 @@ def _target_samples(mesh: trimesh.Trimesh, n: int, threshold: float, seed: int) 
     spacing = TARGET_SPACING * threshold
     dense = int(np.ceil(mesh.area / spacing ** 2)) if len(mesh.faces) and spacing > 0 else 0
     return sample_surface(mesh, max(n, min(dense, MAX_TARGET_POINTS)), seed)
+
+
+def far_share_from(reference: trimesh.Trimesh, n: int = 200_000, threshold: float = 0.05,
+                   seed: int = 0) -> Callable[[trimesh.Trimesh], float]:
+    """``f(mesh) ->`` the share of ``n`` area-uniform samples of ``mesh`` farther than ``threshold``
+    (m) from ``reference``, measured as :func:`mesh_to_mesh` measures ``a_to_b_far_share`` (the same
+    dense sampling of the reference), with one sampling and search tree for every mesh scored."""
+    tree = cKDTree(_target_samples(reference, n, threshold, seed + 3))
+
+    def far_share(mesh: trimesh.Trimesh) -> float:
+        p = sample_surface(mesh, n, seed)
+        return float(np.mean(tree.query(p, workers=-1)[0] > threshold)) if len(p) else 1.0
+
+    return far_share
 
 
 def mesh_to_mesh(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 200_000, threshold: float = 0.05,
