@@ -93,9 +93,11 @@ class MapSnapshot:
             raise InputError("render needs an Intrinsics (it carries the image size)")
         return self._view.render(intrinsics, _pose(c2w))
 
-    def mesh(self, resolution: int | None = None, aabb=None) -> trimesh.Trimesh:
-        """See :meth:`Mapper.mesh`."""
-        return self._view.mesh(resolution, None if aabb is None else _aabb(aabb))
+    def mesh(self, resolution: int | None = None, aabb=None, fill: bool = True) -> trimesh.Trimesh:
+        """See :meth:`Mapper.mesh`; ``fill`` False: without the colour base's surface in the cubes
+        whose priors carry no evidence (what a caller short of memory asks, see
+        :meth:`mesh_scratch_bytes`)."""
+        return self._view.mesh(resolution, None if aabb is None else _aabb(aabb), fill=fill)
 
     def signed_distance(self, points, gradient: bool = False) -> DistanceSample:
         """See :meth:`Mapper.signed_distance`."""
@@ -121,12 +123,12 @@ class MapSnapshot:
         for a block with no voxel. World coordinates, metres."""
         return self._view.block_meshes(np.asarray(blocks, np.int64).reshape(-1, 3), int(block_voxels), resolution)
 
-    def mesh_scratch_bytes(self, resolution: int | None = None, aabb=None) -> int:
+    def mesh_scratch_bytes(self, resolution: int | None = None, aabb=None, fill: bool = True) -> int:
         """Peak scratch bytes :meth:`mesh` with these arguments would take, before the mesh itself:
-        what a caller checks against a memory budget before asking."""
+        what a caller checks against a memory budget before asking (``fill`` as :meth:`mesh`)."""
         view = self._view
         res = view.mesh_resolution if resolution is None else int(resolution)
-        base = view.field.color_base if view.mesh_min_support > 0 else None  # fills the cubes left out
+        base = view.field.color_base if view.mesh_min_support > 0 and fill else None  # fills the cubes left out
         return (working_bytes(view.voxels.voxel_keys, view.voxel_size, res, None if aabb is None else _aabb(aabb))
                 + fill_scratch_bytes(0 if base is None else len(base)))
 

@@ -182,15 +182,16 @@ class MapView:
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
              prior_margin: float | None = 1.0, voxel_keys: np.ndarray | None = None,
-             lookup: PriorLookup | None = None, base_cells: tuple[np.ndarray, np.ndarray] | None = None
-             ) -> trimesh.Trimesh:
+             lookup: PriorLookup | None = None, base_cells: tuple[np.ndarray, np.ndarray] | None = None,
+             fill: bool = True) -> trimesh.Trimesh:
         """Marching-cubes mesh of the map, vertex colours from the colour field. The residual MLP is
         evaluated at lattice points whose prior is within ``prior_margin`` truncation units of the
         surface (None: everywhere), where the zero crossing can be. Cubes whose lattice points lack
         observed priors (support under ``mesh_min_support``) are left out of the field's surface
         and take the fused base's there (:func:`~h3edge.mapping.mesh.left_out_surface`, D53-9).
         ``voxel_keys``: mesh only these voxels; ``lookup``: this view's :class:`PriorLookup`, when
-        the caller has one; ``base_cells``: the base's cells to read (default: all of them)."""
+        the caller has one; ``base_cells``: the base's cells to read (default: all of them);
+        ``fill`` False: the field's surface alone."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
         lookup = lookup or PriorLookup(self.voxels)
@@ -199,7 +200,7 @@ class MapView:
         res = resolution or self.mesh_resolution
         mesh = extract_mesh(keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup), res, None,
                             aabb=aabb, support_fn=lookup.support, min_support=self.mesh_min_support)
-        cells = self._base_cells() if base_cells is None else base_cells
+        cells = None if not fill else self._base_cells() if base_cells is None else base_cells
         if cells is not None and len(cells[0]):
             # where the priors carry no evidence yet the mesh shows the fused base's surface (D53-9)
             verts, faces = left_out_surface(*cells, self.field.color_base.cfg.cell, keys, self.voxel_size, res,

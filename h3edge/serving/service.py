@@ -614,13 +614,18 @@ class MapService:
         the query budget."""
         res, box, fmt = request.resolution, request.aabb, request.format
         view = self.view()
-        need = view.mesh_scratch_bytes(res, box)
+        need, fill = view.mesh_scratch_bytes(res, box), True
+        if need > self.plan["query_working_set"]:
+            # the colour base's surface in the cubes without evidence is what a mesh can do without (D53-9)
+            need, fill = view.mesh_scratch_bytes(res, box, fill=False), False
+            log.info("mesh query: the base's fill left out, over the %d MB query budget",
+                     self.plan["query_working_set"] >> 20)
         if need > self.plan["query_working_set"]:
             raise QueryError(f"a mesh at resolution {res} of this region needs ~{need >> 20} MB of scratch, over this "
                              f"service's {self.plan['query_working_set'] >> 20} MB query budget: use a lower "
                              f"resolution or an aabb")
         t0 = time.perf_counter()
-        mesh = view.mesh(res, box)
+        mesh = view.mesh(res, box, fill=fill)
         self.mapper.timings.add("mesh", time.perf_counter() - t0)
         if len(mesh.faces) == 0:
             raise QueryError("the map has no surface yet" + (" inside that aabb" if box is not None else ""))
