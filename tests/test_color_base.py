@@ -225,6 +225,7 @@ def test_a_mesh_shows_the_base_surface_where_the_priors_carry_no_evidence(tiny_s
     fills them (D53-9): with every prior's evidence taken away, the mesh is the base's alone, lies
     on the scene's surface and covers as much of it; a block's mesh reads the same base faces as a
     mesh of that block's voxels from the whole base."""
+    from h3edge.api import MapSnapshot
     from h3edge.eval.metrics import mesh_to_mesh
     from h3edge.io.replica import ReplicaSequence
     from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
@@ -240,6 +241,9 @@ def test_a_mesh_shows_the_base_surface_where_the_priors_carry_no_evidence(tiny_s
     none = (np.zeros((0, 3), np.int64), np.zeros(0, np.float32))
     field_only, filled = view.mesh(base_cells=none), view.mesh()
     assert len(filled.faces) >= len(field_only.faces) > 0
+    snap = MapSnapshot(view, m.frames_mapped)  # what a caller short of memory asks for instead
+    assert snap.mesh_scratch_bytes(fill=False) < snap.mesh_scratch_bytes()
+    assert len(snap.mesh(fill=False).faces) == len(field_only.faces)
     view.voxels.prior_set[:] = False  # the view's own copy: no prior carries evidence
     assert len(view.mesh(base_cells=none).faces) == 0
     base_only = view.mesh()
