@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
+from h3edge.mapping.trilinear import CORNERS
 from h3edge.mapping.voxels import unpack
 
 SdfFn = Callable[[np.ndarray], np.ndarray]  # points (N, 3) metres -> SDF (N,), any positive-outside unit
@@ -165,7 +166,6 @@ def _chunk_surface(ijk: np.ndarray, voxel_size: float, sdf_fn: SdfFn, r: int, ba
 
 
 SURFACE_BLOCK = 32  # cells per block edge: the fused base's marching cubes runs block by block
-_CUBE_CORNERS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)])  # a cube's 8 corners
 
 
 def cells_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float,
@@ -211,7 +211,7 @@ def _march_blocks(ijk: np.ndarray, vals: np.ndarray, cell: float, index: tuple[n
     vol = np.empty((b + 1,) * 3, np.float32)
     for block in unpack(np.asarray(blocks, np.int64).reshape(-1)):
         vol.fill(np.nan)
-        for o in _CUBE_CORNERS:
+        for o in CORNERS:
             key = pack((block + o)[None])
             rows = order[np.searchsorted(sorted_keys, key)[0]:np.searchsorted(sorted_keys, key, side="right")[0]]
             loc = ijk[rows] - (block + o) * b
@@ -264,7 +264,7 @@ def left_out_cubes(points: np.ndarray, voxel_keys: np.ndarray, voxel_size: float
         inside = np.flatnonzero(lookup(region, pack(np.floor_divide(q, resolution))) >= 0)
         if len(inside) == 0:
             continue
-        corners, of_corner = np.unique(pack((q[inside, None, :] + _CUBE_CORNERS).reshape(-1, 3)), return_inverse=True)
+        corners, of_corner = np.unique(pack((q[inside, None, :] + CORNERS).reshape(-1, 3)), return_inverse=True)
         low = support_fn(unpack(corners) * spacing) < min_support
         left = np.zeros(len(cubes), bool)
         left[inside] = low[of_corner.reshape(-1)].reshape(-1, 8).any(1)
@@ -310,7 +310,7 @@ def left_out_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float, voxe
         near = part[left & np.isfinite(vals[s:s + FILL_BATCH])]
         if len(near):
             owners = np.unique(np.concatenate([owners] + [pack(np.floor_divide(near - o, SURFACE_BLOCK))
-                                                          for o in _CUBE_CORNERS]))
+                                                          for o in CORNERS]))
     if len(owners) == 0:
         return empty
     verts, faces = _march_blocks(ijk, vals, cell, _block_index(ijk, FILL_BATCH), owners)
