@@ -4,7 +4,9 @@ base's sparse-cell surface and where it fills a mesh's unsupported cubes."""
 import numpy as np
 import trimesh
 
+from h3edge.mapping.color_base import ColorBase, ColorBaseConfig
 from h3edge.mapping.mesh import SURFACE_BLOCK, cells_surface, extract_mesh, left_out_surface
+from h3edge.mapping.voxels import pack
 from tests.helpers import voxels_near_surface
 
 C = np.array([0.03, -0.02, 0.05])
@@ -83,7 +85,15 @@ def test_left_out_surface_fills_only_the_cubes_the_mesh_leaves_out():
         return (p[:, 0] > C[0]).astype(float)
 
     field = extract_mesh(keys, VOX, sphere, res, support_fn=support, min_support=0.25)
-    verts, faces = left_out_surface(ijk, d, cell, keys, VOX, res, support, 0.25)
+    base = ColorBase(ColorBaseConfig(cell=cell))  # the cells as a fused base holds them
+    base.load_state_dict({"keys": pack(ijk), "rgb": np.zeros((len(ijk), 3), np.float32),
+                          "weight": np.ones(len(ijk), np.float32), "distance": d})
+    source = base.distances()
+
+    def left_out_surface_of(cells, support_fn, min_support):
+        return left_out_surface(cells, source.volume, cell, keys, VOX, res, support_fn, min_support)
+
+    verts, faces = left_out_surface_of(source.batches(1 << 18), support, 0.25)
     fill = trimesh.Trimesh(verts, faces, process=False)
     assert field.vertices[:, 0].min() >= C[0] - 1e-9 and len(field.faces)
     # the fill lies on the sphere, on the side without evidence, up to the lattice cube at the cut
@@ -91,6 +101,14 @@ def test_left_out_surface_fills_only_the_cubes_the_mesh_leaves_out():
     assert fill.triangles_center[:, 0].max() < C[0] + VOX / res
     both = field.area + fill.area
     assert abs(both - 4 * np.pi * R ** 2) / (4 * np.pi * R ** 2) < 0.03
-    assert len(left_out_surface(ijk, d, cell, keys, VOX, res, support, 0.0)[1]) == 0  # nothing left out
-    everywhere = left_out_surface(ijk, d, cell, keys, VOX, res, lambda p: np.ones(len(p)), 0.25)
+    assert len(left_out_surface_of([(ijk, d)], support, 0.0)[1]) == 0  # nothing left out
+    everywhere = left_out_surface_of([(ijk, d)], lambda p: np.ones(len(p)), 0.25)
     assert len(everywhere[1]) == 0
+    # the same surface from the base's cells in batches of any size, or from the cells as arrays
+    for cells in (source.batches(1000), [(ijk, d)]):
+        v2, f2 = left_out_surface_of(cells, support, 0.25)
+        assert np.array_equal(v2, verts) and np.array_equal(f2, faces)
+    # a cell the base holds no distance at (weight 0) is not meshed
+    gone = (ijk[:, 0] + 0.5) * cell < C[0] - R / 2
+    base.cells[:len(ijk)][gone, 3] = 0
+    assert 0 < len(left_out_surface_of(base.distances().batches(1 << 18), support, 0.25)[1]) < len(faces)

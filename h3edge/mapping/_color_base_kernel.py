@@ -231,3 +231,21 @@ def sample_distance(slots, keys, cells, pts, cell, out, known):
         known[i] = ws >= 0.5
         if known[i]:
             out[i] = d / ws
+
+
+@nb.njit(cache=True, nogil=True)
+def distance_volume(slots, keys, cells, i0, j0, k0, out):
+    """``out[a, b, c]`` = the fused signed distance (m) of cell (i0 + a, j0 + b, k0 + c), NaN where no
+    cell holds one (not in the table, weight <= 0 or not finite)."""
+    mask = len(slots) - 1
+    na, nb_, nc = out.shape
+    for a in range(na):
+        for b in range(nb_):
+            for c in range(nc):
+                out[a, b, c] = np.nan
+                key = _key(i0 + a, j0 + b, k0 + c)
+                if key < 0:
+                    continue
+                row, _ = _find(slots, keys, key, mask)
+                if row >= 0 and cells[row, 3] > 0.0 and math.isfinite(cells[row, 4]):
+                    out[a, b, c] = cells[row, 4]

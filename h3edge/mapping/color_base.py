@@ -40,13 +40,14 @@ cell's colour, weight and distance share a row (a warm frame re-fused on the pho
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping._color_base_kernel import fuse_frame, rebuild_slots, sample_cells, sample_distance
+from h3edge.mapping._color_base_kernel import distance_volume, fuse_frame, rebuild_slots, sample_cells, sample_distance
 
 # slots per row, at least: the slot table at most a quarter full. Most reads miss (a render's search
 # samples in front of the surface), and a miss walks the run of occupied slots from its home, which
@@ -153,16 +154,10 @@ class ColorBase:
             sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
         return out, known
 
-    def distance_cells(self) -> tuple[np.ndarray, np.ndarray]:
-        """The cells in use as integer coordinates (N, 3) int64 (centre ``(ijk + 1/2) * cell`` m) and
-        their fused signed distance (N,) float32 m, NaN where a cell holds none (host copies)."""
-        from h3edge.mapping.voxels import unpack
-
-        keys, cells = self.keys, self.cells  # one consistent pair while a frame may be fused
-        n = min(self.n, len(keys), len(cells))
-        dist = cells[:n, 4].copy()
-        dist[~(cells[:n, 3] > 0)] = np.nan
-        return unpack(keys[:n]), dist
+    def distances(self) -> FusedDistances:
+        """A read-only handle on the fused signed distances as they are now, for meshing
+        (:class:`FusedDistances`: the base's own table, no copy of its cells)."""
+        return FusedDistances(self)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The cells in use as host arrays (keys int64 (N,), rgb float32 (N, 3) in [0, 1], weight
@@ -189,6 +184,44 @@ class ColorBase:
                                      np.asarray(distance, np.float32).reshape(-1, 1)], axis=1)
         self._alloc(max(min(_MIN_ROWS, self.cfg.max_cells), self.n))  # room to grow, the slots rebuilt
         self.refused = int(arrays.get("refused", 0))
+
+
+class FusedDistances:
+    """The fused signed distances of a :class:`ColorBase`, read in place from the arrays it held
+    when this was taken: its cells a batch at a time (:meth:`batches`: the rows in use then) and
+    dense volumes of them by hash lookups (:meth:`volume`: what the table holds at the read). What
+    a mesh fills the cubes it leaves out from (:func:`~h3edge.mapping.mesh.left_out_surface`,
+    D53-9), in scratch that does not grow with the base. Safe beside :meth:`ColorBase.fuse` on
+    another thread (the slot table is taken before the rows it indexes, and a base that grows
+    moves to new arrays: these stay whole); a cell fused meanwhile may read at its old or new value."""
+
+    def __init__(self, base: ColorBase):
+        self.slots = base.slots  # first: the rows it indexes are in the arrays taken after it
+        self.keys, self.cells = base.keys, base.cells
+        self.n = min(base.n, len(self.keys), len(self.cells))
+        self.cell = base.cfg.cell  # m, a cell's side
+
+    def __len__(self) -> int:
+        return self.n
+
+    def batches(self, rows: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """The cells, ``rows`` at a time: integer coordinates (n, 3) int64 (centre ``(ijk + 1/2) *
+        cell`` m) and fused signed distance (n,) float32 m, NaN where a cell holds none."""
+        from h3edge.mapping.voxels import unpack
+
+        for s in range(0, self.n, rows):
+            part = self.cells[s:min(self.n, s + rows)]
+            dist = part[:, 4].copy()
+            dist[~(part[:, 3] > 0)] = np.nan
+            yield unpack(self.keys[s:s + len(part)]), dist
+
+    def volume(self, origin: np.ndarray, size: int) -> np.ndarray:
+        """The fused signed distance (size, size, size) float32 m of the cells ``origin + (a, b, c)``
+        (``origin`` (3,) int cell coordinates), NaN where no cell holds one."""
+        out = np.empty((size,) * 3, np.float32)
+        o = np.asarray(origin, np.int64).reshape(3)
+        distance_volume(self.slots, self.keys, self.cells, int(o[0]), int(o[1]), int(o[2]), out)
+        return out
 
 
 _EPS = 1.0 / 512  # the base's colour is kept inside (eps, 1 - eps) so that its odds stay finite

@@ -8,7 +8,7 @@ unobserved space. Vertex colours come from the colour field at the vertices.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 import trimesh
@@ -168,6 +168,11 @@ def _chunk_surface(ijk: np.ndarray, voxel_size: float, sdf_fn: SdfFn, r: int, ba
 SURFACE_BLOCK = 32  # cells per block edge: the fused base's marching cubes runs block by block
 
 
+VolumeFn = Callable[[np.ndarray, int], np.ndarray]
+"""``f(origin (3,) int cell coordinates, size) ->`` the signed distance (size, size, size) float32 of the cells
+``origin + (a, b, c)``, NaN where none is held"""
+
+
 def cells_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float,
                   keep_block: Callable[[np.ndarray], np.ndarray] | None = None,
                   batch: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
@@ -183,7 +188,7 @@ def cells_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float,
     blocks = np.unique(index[0])
     if keep_block is not None:
         blocks = blocks[np.asarray(keep_block(unpack(blocks)), bool)]
-    return _march_blocks(ijk, np.asarray(values, np.float32), cell, index, blocks)
+    return _march_blocks(_indexed_volume(ijk, np.asarray(values, np.float32), index), cell, blocks)
 
 
 def _block_index(ijk: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -197,29 +202,39 @@ def _block_index(ijk: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
     return keys[order], order
 
 
-def _march_blocks(ijk: np.ndarray, vals: np.ndarray, cell: float, index: tuple[np.ndarray, np.ndarray],
-                  blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of :func:`cells_surface` over the blocks with keys ``blocks``; each block's
-    volume holds its cells and, as its upper halo, the cells on the lower faces of the 7 blocks
-    above it."""
+def _indexed_volume(ijk: np.ndarray, vals: np.ndarray, index: tuple[np.ndarray, np.ndarray]) -> VolumeFn:
+    """A :data:`VolumeFn` over sparse cells and their :func:`_block_index`, for volumes of at most
+    ``SURFACE_BLOCK + 1`` cells a side whose origin is a block's lower corner (they reach into the 7
+    blocks above it only)."""
     from h3edge.mapping.voxels import pack
 
-    empty = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
     sorted_keys, order = index
-    b = SURFACE_BLOCK
-    verts, faces, n = [], [], 0
-    vol = np.empty((b + 1,) * 3, np.float32)
-    for block in unpack(np.asarray(blocks, np.int64).reshape(-1)):
-        vol.fill(np.nan)
+
+    def volume(origin: np.ndarray, size: int) -> np.ndarray:
+        vol = np.full((size,) * 3, np.nan, np.float32)
+        block = np.floor_divide(origin, SURFACE_BLOCK)
         for o in CORNERS:
             key = pack((block + o)[None])
             rows = order[np.searchsorted(sorted_keys, key)[0]:np.searchsorted(sorted_keys, key, side="right")[0]]
-            loc = ijk[rows] - (block + o) * b
-            if o.any():  # the neighbour's cells on the face this block shares with it
-                keep = np.all((loc == 0) | (o == 0), axis=1)
-                rows, loc = rows[keep], loc[keep]
-            loc += o * b
-            vol[loc[:, 0], loc[:, 1], loc[:, 2]] = vals[rows]
+            loc = ijk[rows] - origin
+            keep = np.all((loc >= 0) & (loc < size), axis=1)
+            vol[loc[keep, 0], loc[keep, 1], loc[keep, 2]] = vals[rows[keep]]
+        return vol
+
+    return volume
+
+
+def _march_blocks(volume_fn: VolumeFn, cell: float, blocks: np.ndarray,
+                  keep_faces: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of :func:`cells_surface` over the blocks with keys ``blocks``; each block's
+    volume (``volume_fn``) holds its cells and, as its upper halo, the cells on the lower faces of
+    the 7 blocks above it. ``keep_faces(centroids (F, 3) m) -> (F,) bool``: the faces of each block
+    kept (the rest dropped block by block, so that only the kept surface accumulates)."""
+    empty = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
+    b = SURFACE_BLOCK
+    verts, faces, n = [], [], 0
+    for block in unpack(np.asarray(blocks, np.int64).reshape(-1)):
+        vol = volume_fn(block * b, b + 1)
         ok = np.isfinite(vol)
         cube = ok[1:, 1:, 1:] & ok[:-1, 1:, 1:] & ok[1:, :-1, 1:] & ok[1:, 1:, :-1]
         cube &= ok[:-1, :-1, 1:] & ok[:-1, 1:, :-1] & ok[1:, :-1, :-1] & ok[:-1, :-1, :-1]
@@ -234,6 +249,12 @@ def _march_blocks(ijk: np.ndarray, vals: np.ndarray, cell: float, index: tuple[n
             v, f, _, _ = marching_cubes(filled, level=0.0, mask=mask, allow_degenerate=True)
         except RuntimeError:  # the sign changes only outside the enabled cubes
             continue
+        if keep_faces is not None:
+            f = f[keep_faces((v[f].mean(1) + block * b + 0.5) * cell)]
+            if len(f) == 0:
+                continue
+            used, f = np.unique(f, return_inverse=True)
+            v, f = v[used], f.reshape(-1, 3)
         verts.append(v + block * b)
         faces.append(f + n)
         n += len(v)
@@ -273,49 +294,49 @@ def left_out_cubes(points: np.ndarray, voxel_keys: np.ndarray, voxel_size: float
 
 
 def fill_scratch_bytes(n_cells: int) -> int:
-    """Peak scratch memory of a mesh's fill from a base of ``n_cells`` cells (the base's cells and
-    distances as :meth:`~h3edge.mapping.color_base.ColorBase.distance_cells` copies them, 28 bytes a
-    cell; :func:`left_out_surface`'s block index, 24 bytes a cell and its sort's; a batch of
-    :func:`left_out_cubes`; one block's volume), before the surface itself. Measured (tracemalloc)
-    on the real set's map of 987,181 cells: 117 MB; this says 130."""
-    return 64 * n_cells + 256 * FILL_BATCH + 12 * (SURFACE_BLOCK + 1) ** 3 if n_cells else 0
+    """Peak scratch memory of a mesh's fill from a base of ``n_cells`` cells, before the surface
+    itself: a batch of ``FILL_BATCH`` cells read from the base and tested by :func:`left_out_cubes`
+    (~300 bytes a batch cell), one block's volume and its masks, and the owner blocks' keys (64
+    bytes a 32-cell run); the base's cells are read in place
+    (:class:`~h3edge.mapping.color_base.FusedDistances`), and each block's faces are cut to the
+    left-out cubes before the next block is marched. Measured (tracemalloc) on the real set's map
+    of 969,081 cells: 20.7 MB (this says 22.0; 117 MB when every cell was copied and indexed, D53-9)."""
+    return 300 * FILL_BATCH + 12 * (SURFACE_BLOCK + 1) ** 3 + 64 * (n_cells // SURFACE_BLOCK) if n_cells else 0
 
 
-FILL_BATCH = 1 << 18  # cells a batch of the fill tests and indexes at a time
+FILL_BATCH = 1 << 16  # cells a batch of the fill tests at a time (1 << 18: the same time, 4x the scratch)
 
 
-def left_out_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float, voxel_keys: np.ndarray,
-                     voxel_size: float, resolution: int, support_fn: SupportFn, min_support: float,
-                     aabb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (V, 3) metres, faces (F, 3)): the surface of a fused base (:func:`cells_surface` of
-    ``values`` at cells ``cell_ijk`` of side ``cell`` m) where :func:`extract_mesh` of the same
-    voxels (optionally cut to ``aabb``), ``resolution`` and support left its lattice cubes out: the
-    faces whose centroid lies in such a cube (:func:`left_out_cubes`). Where the map's priors
-    carry no evidence yet, a mesh shows the surface the frames fused there, as a render does.
-    Scratch: :func:`fill_scratch_bytes`."""
+def left_out_surface(cells: Iterable[tuple[np.ndarray, np.ndarray]], volume_fn: VolumeFn, cell: float,
+                     voxel_keys: np.ndarray, voxel_size: float, resolution: int, support_fn: SupportFn,
+                     min_support: float, aabb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) metres, faces (F, 3)): the surface of a fused base (:func:`cells_surface`'s,
+    of cells of side ``cell`` m) where :func:`extract_mesh` of the same voxels (optionally cut to
+    ``aabb``), ``resolution`` and support left its lattice cubes out: the faces whose centroid lies
+    in such a cube (:func:`left_out_cubes`). Where the map's priors carry no evidence yet, a mesh
+    shows the surface the frames fused there, as a render does. ``cells``: batches of (cell
+    coordinates (n, 3) int, signed distance (n,), NaN: none) that may lie there (the base's, or a
+    subset near the voxels); ``volume_fn``: the base's distances as dense volumes. Scratch:
+    :func:`fill_scratch_bytes`."""
     from h3edge.mapping.voxels import pack
 
     empty = np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
     region = pack(_region(voxel_keys, voxel_size, aabb))
-    if len(region) == 0 or len(cell_ijk) == 0 or min_support <= 0:
+    if len(region) == 0 or min_support <= 0:
         return empty
-    ijk = np.asarray(cell_ijk, np.int64).reshape(-1, 3)
-    vals = np.asarray(values, np.float32)
     # the blocks owning a base cube with a corner in a left-out lattice cube (every base cube that
     # overlaps a lattice cube has a corner inside it), a batch of cells at a time
     owners = np.zeros(0, np.int64)
-    for s in range(0, len(ijk), FILL_BATCH):
-        part = ijk[s:s + FILL_BATCH]
-        left = left_out_cubes((part + 0.5) * cell, region, voxel_size, resolution, support_fn, min_support)
-        near = part[left & np.isfinite(vals[s:s + FILL_BATCH])]
-        if len(near):
-            owners = np.unique(np.concatenate([owners] + [pack(np.floor_divide(near - o, SURFACE_BLOCK))
-                                                          for o in CORNERS]))
+    for ijk, vals in cells:
+        ijk = np.asarray(ijk, np.int64).reshape(-1, 3)
+        for s in range(0, len(ijk), FILL_BATCH):
+            part = ijk[s:s + FILL_BATCH]
+            left = left_out_cubes((part + 0.5) * cell, region, voxel_size, resolution, support_fn, min_support)
+            near = part[left & np.isfinite(vals[s:s + FILL_BATCH])]
+            if len(near):
+                owners = np.unique(np.concatenate([owners] + [pack(np.floor_divide(near - o, SURFACE_BLOCK))
+                                                              for o in CORNERS]))
     if len(owners) == 0:
         return empty
-    verts, faces = _march_blocks(ijk, vals, cell, _block_index(ijk, FILL_BATCH), owners)
-    if len(faces) == 0:
-        return empty
-    faces = faces[left_out_cubes(verts[faces].mean(1), region, voxel_size, resolution, support_fn, min_support)]
-    used, faces = np.unique(faces, return_inverse=True)
-    return verts[used], faces.reshape(-1, 3)
+    return _march_blocks(volume_fn, cell, owners,
+                         lambda c: left_out_cubes(c, region, voxel_size, resolution, support_fn, min_support))

@@ -10,7 +10,6 @@ a copy can carry ONNX-exported decoders run by onnxruntime (:mod:`h3edge.mapping
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -19,9 +18,10 @@ import trimesh
 from h3edge.errors import InputError
 from h3edge.geometry.camera import Intrinsics, rigid_error
 from h3edge.mapping.cell_votes import CellVotes
+from h3edge.mapping.color_base import FusedDistances
 from h3edge.mapping.field import Field
 from h3edge.mapping.free_space import FreeSpace
-from h3edge.mapping.mesh import extract_mesh, left_out_surface, paint
+from h3edge.mapping.mesh import FILL_BATCH, extract_mesh, left_out_surface, paint
 from h3edge.mapping.onnx_decoders import DecoderRuntime
 from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig, free_floor_fn
 from h3edge.mapping.voxels import VoxelMap
@@ -139,46 +139,42 @@ class MapView:
         from h3edge.mapping.voxels import unpack
 
         keys = self.voxels.voxel_keys
+        blocks = np.asarray(blocks, np.int64).reshape(-1, 3)
         of_block = np.floor_divide(unpack(keys), block_voxels)
         lookup = PriorLookup(self.voxels)
-        near_block = self._base_cells_by_block(block_voxels)
+        near_block = self._base_cells_near(blocks, block_voxels)
         out = []
-        for b in np.asarray(blocks).reshape(-1, 3):
+        for b, near in zip(blocks, near_block):
             mine = keys[np.all(of_block == b, axis=1)]
-            out.append(self.mesh(resolution, voxel_keys=mine, lookup=lookup, base_cells=near_block(b))
+            out.append(self.mesh(resolution, voxel_keys=mine, lookup=lookup, base_cells=near)
                        if len(mine) else trimesh.Trimesh())
         return out
 
-    def _base_cells(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The fused base's cells and distances (:meth:`ColorBase.distance_cells`) where a mesh
-        fills the cubes it leaves out with them; None where it does not."""
+    def _fill_source(self) -> FusedDistances | None:
+        """The fused base's distances a mesh fills the cubes it leaves out from (D53-9); None where
+        it does not (no base, or no support rule)."""
         base = self.field.color_base
         if base is None or len(base) == 0 or self.mesh_min_support <= 0:
             return None
-        return base.distance_cells()
+        return base.distances()
 
-    def _base_cells_by_block(self, block_voxels: int) -> Callable[[np.ndarray], tuple | None]:
-        """``f(block (3,)) ->`` the base's cells in that block of ``block_voxels`` voxels and its 26
-        neighbours (the cubes at its faces read cells across them), one sort for every block."""
-        from h3edge.mapping.voxels import pack
-
-        cells = self._base_cells()
-        if cells is None:
-            return lambda b: None
-        ijk, dist = cells
-        scale = self.field.color_base.cfg.cell / (self.voxel_size * block_voxels)
-        of_block = pack(np.floor((ijk + 0.5) * scale).astype(np.int64))
-        order = np.argsort(of_block, kind="stable")
-        ordered = of_block[order]
-        around = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-
-        def near(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            want = pack(np.asarray(block, np.int64)[None] + around)
-            lo, hi = np.searchsorted(ordered, want), np.searchsorted(ordered, want, side="right")
-            rows = order[np.concatenate([np.arange(a, z) for a, z in zip(lo, hi)])]
-            return ijk[rows], dist[rows]
-
-        return near
+    def _base_cells_near(self, blocks: np.ndarray, block_voxels: int) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Per block of ``blocks`` (B, 3) (``block_voxels`` voxels a side): the base's cells in it and
+        its 26 neighbours (the cubes at its faces read cells across them), as (coordinates (n, 3),
+        distances (n,)), from one pass over the base a batch at a time; None without a fill."""
+        source = self._fill_source()
+        if source is None:
+            return [None] * len(blocks)
+        scale = source.cell / (self.voxel_size * block_voxels)
+        parts: list[list] = [[] for _ in blocks]
+        for ijk, dist in source.batches(FILL_BATCH):
+            of_block = np.floor((ijk + 0.5) * scale).astype(np.int64)
+            for part, b in zip(parts, blocks):
+                near = np.flatnonzero(np.all(np.abs(of_block - b) <= 1, axis=1))
+                if len(near):
+                    part.append((ijk[near], dist[near]))
+        return [(np.concatenate([p[0] for p in part]), np.concatenate([p[1] for p in part])) if part
+                else (np.zeros((0, 3), np.int64), np.zeros(0, np.float32)) for part in parts]
 
     def mesh(self, resolution: int | None = None, aabb: np.ndarray | None = None, color: bool = True,
              prior_margin: float | None = 1.0, voxel_keys: np.ndarray | None = None,
@@ -200,10 +196,11 @@ class MapView:
         res = resolution or self.mesh_resolution
         mesh = extract_mesh(keys, self.voxel_size, lambda x: self.banded_sdf_np(x, margin, lookup), res, None,
                             aabb=aabb, support_fn=lookup.support, min_support=self.mesh_min_support)
-        cells = None if not fill else self._base_cells() if base_cells is None else base_cells
-        if cells is not None and len(cells[0]):
+        source = self._fill_source() if fill else None
+        if source is not None:
             # where the priors carry no evidence yet the mesh shows the fused base's surface (D53-9)
-            verts, faces = left_out_surface(*cells, self.field.color_base.cfg.cell, keys, self.voxel_size, res,
+            cells = source.batches(FILL_BATCH) if base_cells is None else [base_cells]
+            verts, faces = left_out_surface(cells, source.volume, source.cell, keys, self.voxel_size, res,
                                             lookup.support, self.mesh_min_support, aabb)
             if len(faces):
                 v, f = np.asarray(mesh.vertices).reshape(-1, 3), np.asarray(mesh.faces).reshape(-1, 3)
