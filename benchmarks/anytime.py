@@ -60,7 +60,7 @@ from h3edge.apps.offline import LAST_FRAME, map_sequence
 from h3edge.config import apply_overrides, load_profile, parse_override, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate_views
 from h3edge.eval.metrics import far_share_from, mesh_to_mesh
-from h3edge.eval.tsdf import TsdfFusion
+from h3edge.eval.tsdf import TIMED_BLOCKS, TsdfFusion
 from h3edge.io.replica import ReplicaSequence
 from h3edge.mapping.engine import MapEngine
 from h3edge.mapping.raymarch import RenderConfig
@@ -111,11 +111,12 @@ def score(renderer, views: list, threshold: float, mesh=None, reference=None, tr
 
 
 def replay_tsdf(frames: list, hz: float, queue: int, marks: list[Checkpoint], views: list, threshold: float,
-                voxel: float, truth=None) -> tuple[list[dict], dict]:
+                voxel: float, truth=None, blocks: int = TIMED_BLOCKS) -> tuple[list[dict], dict]:
     """The TSDF peer's replay, timed by its measured integrations; rows per checkpoint, and a
     summary with the meshes at each checkpoint label. ``truth``: scores the stray surface against
-    the scene's own mesh (:func:`score`)."""
-    fusion = TsdfFusion(frames[0].intrinsics, voxel)
+    the scene's own mesh (:func:`score`); ``blocks``: the voxel blocks it allocates up front
+    (:class:`~h3edge.eval.tsdf.TsdfFusion`)."""
+    fusion = TsdfFusion(frames[0].intrinsics, voxel, block_count=blocks)
     rows, meshes, pending = [], {}, list(marks)
     free_at, k, skipped, times = 0.0, 0, 0, []
 
@@ -266,7 +267,8 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
     gt = Path(getattr(seq, "root", "")) / "gt_mesh.ply"  # the simulated scenes' own mesh
     truth = (far_share_from(trimesh.load(gt, process=False), MESH_POINTS, threshold)
              if getattr(seq, "root", None) is not None and gt.is_file() else None)
-    tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel, truth)
+    tsdf_rows, tsdf = replay_tsdf(frames, hz, args.queue, marks, views, threshold, args.tsdf_voxel, truth,
+                                  args.tsdf_blocks)
     tsdf_label = f"TSDF ({1000 * args.tsdf_voxel:.0f} mm)"
     runs = {tsdf_label: tsdf_rows}
     summaries = {tsdf_label: {k: v for k, v in tsdf.items() if k != "meshes"}}
@@ -343,6 +345,8 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=8, help="held-out views scored at each checkpoint")
     ap.add_argument("--frames", type=int, help="limit frames per dataset (smoke runs)")
     ap.add_argument("--tsdf-voxel", type=float, default=0.01)
+    ap.add_argument("--tsdf-blocks", type=int, default=TIMED_BLOCKS,
+                    help="voxel blocks the TSDF peer allocates up front (it grows past them, slowly)")
     ap.add_argument("--components", action="store_true", help="keep h3edge's timing components in the JSON")
     ap.add_argument("--work", default="out/bench_mapping", help="where the simulated scenes are cached")
     ap.add_argument("--out", default="research/bench_anytime", help="writes OUT.md, OUT.json and the pictures")

@@ -51,7 +51,7 @@ from h3edge.apps.offline import run_offline
 from h3edge.config import apply_overrides, load_profile, parse_variant
 from h3edge.eval.evaluate import MeshRenderer, evaluate
 from h3edge.eval.metrics import depth_error_map
-from h3edge.eval.tsdf import fuse_tsdf
+from h3edge.eval.tsdf import TIMED_BLOCKS, fuse_tsdf
 from h3edge.geometry.raycast import MeshRaycaster
 from h3edge.io.replica import ReplicaSequence
 from h3edge.io.sequence import read_pose_rows, write_color, write_depth, write_pose_rows
@@ -148,7 +148,7 @@ def bench_dataset(name: str, seq, profile, work: Path, frames: int | None, tsdf_
                   live_hz: float | None = None, settle_s: float = 0.0) -> dict:
     """TSDF and h3edge on ``seq``; ``variants`` {label: MapSettings} and a live replay as extra rows."""
     log.info("%s: TSDF peer (Open3D VoxelBlockGrid, %.0f mm voxels)", name, 1000 * tsdf_voxel)
-    tsdf, tsdf_times = fuse_tsdf(seq, tsdf_voxel, frames)
+    tsdf, tsdf_times = fuse_tsdf(seq, tsdf_voxel, frames, block_count=TIMED_BLOCKS)
     work.mkdir(parents=True, exist_ok=True)
     tsdf.export(work / f"{name}_tsdf_mesh.ply")
     reference = tsdf if seq.gt_mesh_path is None else None  # no GT mesh: compare with the TSDF mesh

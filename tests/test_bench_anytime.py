@@ -16,6 +16,7 @@ def test_anytime_replay_scores_both_methods_at_every_checkpoint(tiny_scene, tmp_
     out = tmp_path / "any"
     assert main(["--datasets", str(tiny_scene), "--hz", "10", "--every-s", "2", "--still-s", "1", "--views", "2",
                  "--modes", "live", "--set", "mapper.rays_per_iteration=256", "--set", "voxels.min_points=3",
+                 "--tsdf-blocks", "4096",
                  "--out", str(out)]) == 0
     assert "| last frame | h3edge live |" in capsys.readouterr().out
     (r,) = json.loads(out.with_suffix(".json").read_text())

@@ -259,3 +259,24 @@ def test_a_mesh_shows_the_base_surface_where_the_priors_carry_no_evidence(tiny_s
     for b, part in zip(blocks, view.block_meshes(blocks, 4)):
         whole = view.mesh(voxel_keys=view.voxels.voxel_keys[np.all(of_block == b, axis=1)])
         assert len(part.faces) == len(whole.faces)
+
+
+def test_the_base_fuses_the_near_side_of_depth_edges_the_rest_of_the_map_leaves_out():
+    """color_base.fuse_edges: a box in front of a wall; mapper.edge_radius leaves the box's rim out of
+    the frame's cleaned depth, and the base fuses it only with the setting."""
+    from h3edge.io.sequence import Frame
+    from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
+
+    depth = WALL.copy()
+    depth[14:34, 20:44] = 1.0  # the box, 1 m in front of the wall
+    colour = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
+    frame = Frame(0, 0.0, colour, depth, FRONT, INTR)
+    rim = backproject(depth, INTR, FRONT)[14:34, 20]  # the box's left column: the near side of an edge
+    known = {}
+    for edges in (False, True):
+        m = MapEngine(MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=False, edge_radius=2),
+                                  color_base=ColorBaseConfig(cell=0.01, stride=1, fuse_edges=edges)))
+        assert m.integrate(frame).mapped
+        assert (m.clean_depth(depth, INTR)[14:34, 20] == 0).all()  # left out of the rest of the map
+        known[edges] = m.color_base.sample_distance(rim)[1].mean()
+    assert known[False] < 0.2 and known[True] > 0.9, known

@@ -17,6 +17,8 @@ import trimesh
 from h3edge.geometry.raycast import import_open3d
 from h3edge.io.sequence import Sequence
 
+TIMED_BLOCKS = 100_000  # blocks a timed TSDF peer allocates up front: it never grows while timed
+
 
 class TsdfFusion:
     """Incremental TSDF fusion (Open3D ``VoxelBlockGrid``, CPU) at ``voxel`` metres with a truncation
@@ -24,10 +26,12 @@ class TsdfFusion:
     any moment (the live peer of the anytime benchmark).
 
     ``block_count``: the 16^3-voxel blocks the grid's hash map holds before it grows (it rehashes to
-    more as frames reach new blocks). Open3D allocates and clears every block's voxels up front (20
-    bytes a voxel): 100,000 blocks took 33 s and 8.1 GB before the first frame on this machine; 4096
-    (330 MB) hold a 7-Scenes room at 1 cm (1,596 blocks; the same mesh either way, and the
-    per-frame integration medians within the machine's spread: 33.5-37.3 vs 37.2-42.8 ms)."""
+    more as frames reach new blocks; the same mesh either way). Open3D allocates and clears every
+    block's voxels up front (20 bytes a voxel): 100,000 blocks take 33 s and 8.1 GB before the first
+    frame on this machine, 4,096 (330 MB) hold a 7-Scenes room at 1 cm (1,596 blocks). A timed peer
+    allocates :data:`TIMED_BLOCKS` instead: each growth re-allocates and copies every block (the
+    simulated room fed at 30 Hz: 113 of 400 frames integrated growing from 4,096; 231 in r13 with
+    100,000 up front)."""
 
     def __init__(self, intrinsics, voxel: float = 0.01, trunc_voxels: float = 4.0, depth_max: float = 10.0,
                  block_count: int = 4096):
@@ -65,10 +69,11 @@ class TsdfFusion:
 
 
 def fuse_tsdf(seq: Sequence, voxel: float = 0.01, frames: int | None = None, trunc_voxels: float = 4.0,
-              depth_max: float = 10.0) -> tuple[trimesh.Trimesh, list[float]]:
+              depth_max: float = 10.0, block_count: int = 4096) -> tuple[trimesh.Trimesh, list[float]]:
     """TSDF fusion of the first ``frames`` frames of ``seq`` at ``voxel`` metres with a truncation of
-    ``trunc_voxels`` voxels; returns the vertex-coloured mesh and the per-frame integration seconds."""
-    fusion = TsdfFusion(seq.intrinsics, voxel, trunc_voxels, depth_max)
+    ``trunc_voxels`` voxels; returns the vertex-coloured mesh and the per-frame integration seconds
+    (``block_count`` as :class:`TsdfFusion`'s: :data:`TIMED_BLOCKS` where the seconds are compared)."""
+    fusion = TsdfFusion(seq.intrinsics, voxel, trunc_voxels, depth_max, block_count)
     n = len(seq) if frames is None else min(frames, len(seq))
     times = []
     for i in range(n):

@@ -73,6 +73,9 @@ class ColorBaseConfig:
     """cells at most (BYTES_PER_CELL each); new ones past it are refused"""
     max_weight: float = 64.0
     """observations a cell's running average remembers (lighting drift)"""
+    fuse_edges: bool = False
+    """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
+    outline of a foreground object); paper: no base (false); D53-11"""
 
     def __post_init__(self) -> None:
         if not self.cell >= 0:

@@ -185,6 +185,7 @@ class ImageFrame:
     intrinsics: Intrinsics
     pix: np.ndarray  # int32 flat indices of the valid-depth pixels
     _edges: dict = dataclasses.field(default_factory=dict, repr=False)  # as StoredFrame's
+    base_depth: np.ndarray | None = dataclasses.field(default=None, repr=False)  # what the colour base fuses
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``n`` valid pixels drawn uniformly with replacement: flat indices, colours, depths (as
@@ -419,7 +420,8 @@ class MapEngine:
             self.free_space.mark(current.depth, intr, current.pose)
         if self.color_base is not None:
             with self.timings.time("color_base"):
-                self.color_base.fuse(current.color, current.depth, intr, current.pose)
+                self.color_base.fuse(current.color, current.depth if current.base_depth is None else current.base_depth,
+                                     intr, current.pose)
 
     def _decide(self, frame: Frame, current: ImageFrame, pts: np.ndarray, new: np.ndarray,
                 defer_texture: bool) -> FrameResult:
@@ -487,8 +489,12 @@ class MapEngine:
         depth = self.clean_depth(frame.depth, frame.intrinsics)
         pose = np.asarray(frame.pose, np.float64)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
-        return (ImageFrame(frame.color, depth, pose, frame.intrinsics, valid),
-                backproject(depth, frame.intrinsics, pose))
+        current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid)
+        if self.color_base is not None and self.settings.color_base.fuse_edges:
+            d = np.asarray(frame.depth, np.float32)
+            ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
+            current.base_depth = np.where(ok, d, np.float32(0))
+        return current, backproject(depth, frame.intrinsics, pose)
 
     def _place_field(self, centre: np.ndarray) -> None:
         self.bound = np.stack([centre - self.cfg.extent / 2, centre + self.cfg.extent / 2])
