@@ -321,11 +321,15 @@ class MapEngine:
                                        f"{self.last_timestamp:.6f} (out of order or duplicate)")
         return "", ""
 
-    def clean_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-        """Valid depth in range, the near side of depth edges left out (``edge_radius``)."""
+    def depth_in_range(self, depth: np.ndarray) -> np.ndarray:
+        """Depth float32 (H, W) metres, 0 where not finite or outside (``min_depth``, ``max_depth``)."""
         d = np.asarray(depth, np.float32)
         ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
-        d = np.where(ok, d, np.float32(0))
+        return np.where(ok, d, np.float32(0))
+
+    def clean_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """Valid depth in range, the near side of depth edges left out (``edge_radius``)."""
+        d = self.depth_in_range(depth)
         if self.cfg.edge_radius > 0:
             d[near_side_of_edges(d, self.cfg.edge_radius, self.edge_jump(intrinsics, self.cfg.edge_radius))] = 0
         return d
@@ -490,10 +494,8 @@ class MapEngine:
         pose = np.asarray(frame.pose, np.float64)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
         current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid)
-        if self.color_base is not None and self.settings.color_base.fuse_edges:
-            d = np.asarray(frame.depth, np.float32)
-            ok = np.isfinite(d) & (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
-            current.base_depth = np.where(ok, d, np.float32(0))
+        if self.color_base is not None and self.settings.color_base.fuse_edges and self.cfg.edge_radius > 0:
+            current.base_depth = self.depth_in_range(frame.depth)  # the outlines too (D53-11)
         return current, backproject(depth, frame.intrinsics, pose)
 
     def _place_field(self, centre: np.ndarray) -> None:

@@ -186,7 +186,8 @@ class MapView:
         observed priors (support under ``mesh_min_support``) are left out of the field's surface
         and take the fused base's there (:func:`~h3edge.mapping.mesh.left_out_surface`, D53-9).
         ``voxel_keys``: mesh only these voxels; ``lookup``: this view's :class:`PriorLookup`, when
-        the caller has one; ``base_cells``: the base's cells to read (default: all of them);
+        the caller has one; ``base_cells``: the base's cells that may lie in a left-out cube, as
+        (coordinates (n, 3), distances (n,)) (default: all of them; the surface is read from the whole base);
         ``fill`` False: the field's surface alone."""
         if len(self.voxels) == 0:
             return trimesh.Trimesh()
