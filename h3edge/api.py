@@ -428,6 +428,8 @@ def warm_up(settings: MapSettings, decoders: DecoderRuntime | None = None) -> fl
     view = engine.view().frozen(decoders)
     view.render(intr, np.eye(4))
     view.mesh(2)
+    if engine.color_base is not None:  # the mesh fill's volume kernel, whether or not that mesh needed it
+        engine.color_base.distances().volume(np.zeros(3, np.int64), 2)
     return time.perf_counter() - t0
 
 
