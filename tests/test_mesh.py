@@ -60,20 +60,33 @@ def sphere_cells(cell: float, band: float):
     return ijk[near], d[near].astype(np.float32)
 
 
+def fused(ijk: np.ndarray, d: np.ndarray, cell: float):
+    """The distances ``d`` at cells ``ijk`` as a fused base holds them (NaN: held, no distance)."""
+    base = ColorBase(ColorBaseConfig(cell=cell))
+    base.load_state_dict({"keys": pack(ijk), "rgb": np.zeros((len(ijk), 3), np.float32),
+                          "weight": np.ones(len(ijk), np.float32), "distance": d})
+    return base
+
+
+def surface_of(ijk, d, cell, keep_block=None):
+    source = fused(ijk, d, cell).distances()
+    return cells_surface(source.batches(1 << 16), source.volume, cell, keep_block)
+
+
 def test_cells_surface_is_the_closed_sphere_across_blocks():
     cell = 0.01
     ijk, d = sphere_cells(cell, 3 * cell)
     assert np.ptp(np.floor_divide(ijk, SURFACE_BLOCK), axis=0).min() >= 2  # spans several blocks a side
-    verts, faces = cells_surface(ijk, d, cell)
+    verts, faces = surface_of(ijk, d, cell)
     mesh = trimesh.Trimesh(verts, faces, process=True)  # merges nothing the block seams left apart
     assert len(mesh.vertices) == len(verts)
     assert mesh.is_watertight
     assert np.abs(np.linalg.norm(verts - C, axis=1) - R).max() < 0.1 * cell
     cut = d.copy()
     cut[(ijk[:, 0] + 0.5) * cell > C[0]] = np.nan  # a cube with a corner not held is not meshed
-    v, f = cells_surface(ijk, cut, cell)
+    v, f = surface_of(ijk, cut, cell)
     assert 0 < len(f) < len(faces) and v[:, 0].max() <= C[0]
-    assert len(cells_surface(ijk, d, cell, lambda blocks: np.zeros(len(blocks), bool))[1]) == 0
+    assert len(surface_of(ijk, d, cell, lambda blocks: np.zeros(len(blocks), bool))[1]) == 0
 
 
 def test_left_out_surface_fills_only_the_cubes_the_mesh_leaves_out():
@@ -85,9 +98,7 @@ def test_left_out_surface_fills_only_the_cubes_the_mesh_leaves_out():
         return (p[:, 0] > C[0]).astype(float)
 
     field = extract_mesh(keys, VOX, sphere, res, support_fn=support, min_support=0.25)
-    base = ColorBase(ColorBaseConfig(cell=cell))  # the cells as a fused base holds them
-    base.load_state_dict({"keys": pack(ijk), "rgb": np.zeros((len(ijk), 3), np.float32),
-                          "weight": np.ones(len(ijk), np.float32), "distance": d})
+    base = fused(ijk, d, cell)
     source = base.distances()
 
     def left_out_surface_of(cells, support_fn, min_support):

@@ -329,7 +329,10 @@ class MapEngine:
 
     def clean_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
         """Valid depth in range, the near side of depth edges left out (``edge_radius``)."""
-        d = self.depth_in_range(depth)
+        return self._edges_left_out(self.depth_in_range(depth), intrinsics)
+
+    def _edges_left_out(self, d: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """``d`` (in range) with the near side of its depth edges set to 0, in place."""
         if self.cfg.edge_radius > 0:
             d[near_side_of_edges(d, self.cfg.edge_radius, self.edge_jump(intrinsics, self.cfg.edge_radius))] = 0
         return d
@@ -490,12 +493,13 @@ class MapEngine:
 
     def _prepare(self, frame: Frame) -> tuple[ImageFrame, np.ndarray]:
         """The frame with cleaned depth and its valid pixels, and its world points (H, W, 3)."""
-        depth = self.clean_depth(frame.depth, frame.intrinsics)
+        in_range = self.depth_in_range(frame.depth)
+        outlines = self.color_base is not None and self.settings.color_base.fuse_edges and self.cfg.edge_radius > 0
+        depth = self._edges_left_out(in_range.copy() if outlines else in_range, frame.intrinsics)
         pose = np.asarray(frame.pose, np.float64)
         valid = np.flatnonzero(depth.reshape(-1) > 0).astype(np.int32)
-        current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid)
-        if self.color_base is not None and self.settings.color_base.fuse_edges and self.cfg.edge_radius > 0:
-            current.base_depth = self.depth_in_range(frame.depth)  # the outlines too (D53-11)
+        current = ImageFrame(frame.color, depth, pose, frame.intrinsics, valid,
+                             base_depth=in_range if outlines else None)  # the base fuses the outlines too (D53-11)
         return current, backproject(depth, frame.intrinsics, pose)
 
     def _place_field(self, centre: np.ndarray) -> None:

@@ -173,55 +173,25 @@ VolumeFn = Callable[[np.ndarray, int], np.ndarray]
 ``origin + (a, b, c)``, NaN where none is held"""
 
 
-def cells_surface(cell_ijk: np.ndarray, values: np.ndarray, cell: float,
-                  keep_block: Callable[[np.ndarray], np.ndarray] | None = None,
-                  batch: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (V, 3) float64 metres, faces (F, 3) int64): the zero level set of ``values`` (N,)
-    (positive outside; NaN: not held) held at the centres ``(ijk + 1/2) * cell`` of sparse cells
-    ``cell_ijk`` (N, 3) int, over every cube of 8 held centres, as TSDF fusion meshes its blocks
-    (filling a missing corner from its neighbours was measured and rejected, D53-9). Runs block
-    by block (``SURFACE_BLOCK`` cells a side, scratch of one block and a block index of 24 bytes a
-    cell); ``keep_block(block_ijk (B, 3)) -> (B,) bool`` picks the blocks meshed (default: all).
-    Vertices on block faces are merged."""
-    ijk = np.asarray(cell_ijk, np.int64).reshape(-1, 3)
-    index = _block_index(ijk, batch)
-    blocks = np.unique(index[0])
+def cells_surface(cells: Iterable[tuple[np.ndarray, np.ndarray]], volume_fn: VolumeFn, cell: float,
+                  keep_block: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) float64 metres, faces (F, 3) int64): the zero level set of a fused base's
+    signed distance (positive outside) held at the centres ``(ijk + 1/2) * cell`` of sparse cells,
+    over every cube of 8 held centres, as TSDF fusion meshes its blocks (filling a missing corner
+    from its neighbours was measured and rejected, D53-9). ``cells``: batches of (cell coordinates
+    (n, 3) int, signed distance (n,), NaN: none), the blocks to mesh; ``volume_fn``: the same
+    distances as dense volumes (:meth:`~h3edge.mapping.color_base.FusedDistances.volume`). Runs block
+    by block (``SURFACE_BLOCK`` cells a side, scratch of one block); ``keep_block(block_ijk (B, 3))
+    -> (B,) bool`` picks the blocks meshed (default: all). Vertices on block faces are merged."""
+    from h3edge.mapping.voxels import pack
+
+    blocks = np.zeros(0, np.int64)
+    for ijk, vals in cells:
+        held = np.asarray(ijk, np.int64).reshape(-1, 3)[np.isfinite(vals)]
+        blocks = np.unique(np.concatenate([blocks, pack(np.floor_divide(held, SURFACE_BLOCK))]))
     if keep_block is not None:
         blocks = blocks[np.asarray(keep_block(unpack(blocks)), bool)]
-    return _march_blocks(_indexed_volume(ijk, np.asarray(values, np.float32), index), cell, blocks)
-
-
-def _block_index(ijk: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
-    """(sorted block keys (N,), the cells' order): the cells of a ``SURFACE_BLOCK`` block by one search."""
-    from h3edge.mapping.voxels import pack
-
-    keys = np.empty(len(ijk), np.int64)
-    for s in range(0, len(ijk), batch):
-        keys[s:s + batch] = pack(np.floor_divide(ijk[s:s + batch], SURFACE_BLOCK))
-    order = np.argsort(keys, kind="stable")
-    return keys[order], order
-
-
-def _indexed_volume(ijk: np.ndarray, vals: np.ndarray, index: tuple[np.ndarray, np.ndarray]) -> VolumeFn:
-    """A :data:`VolumeFn` over sparse cells and their :func:`_block_index`, for volumes of at most
-    ``SURFACE_BLOCK + 1`` cells a side whose origin is a block's lower corner (they reach into the 7
-    blocks above it only)."""
-    from h3edge.mapping.voxels import pack
-
-    sorted_keys, order = index
-
-    def volume(origin: np.ndarray, size: int) -> np.ndarray:
-        vol = np.full((size,) * 3, np.nan, np.float32)
-        block = np.floor_divide(origin, SURFACE_BLOCK)
-        for o in CORNERS:
-            key = pack((block + o)[None])
-            rows = order[np.searchsorted(sorted_keys, key)[0]:np.searchsorted(sorted_keys, key, side="right")[0]]
-            loc = ijk[rows] - origin
-            keep = np.all((loc >= 0) & (loc < size), axis=1)
-            vol[loc[keep, 0], loc[keep, 1], loc[keep, 2]] = vals[rows[keep]]
-        return vol
-
-    return volume
+    return _march_blocks(volume_fn, cell, blocks)
 
 
 def _march_blocks(volume_fn: VolumeFn, cell: float, blocks: np.ndarray,
