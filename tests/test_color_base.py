@@ -46,7 +46,7 @@ def test_a_cell_takes_the_colour_and_depth_of_the_pixel_its_centre_projects_into
     near_wall = np.full((INTR.height, INTR.width), 0.5, np.float32)
     stripes = np.zeros((INTR.height, INTR.width, 3), np.uint8)
     stripes[:, 1::2] = 255
-    base = ColorBase(ColorBaseConfig(cell=0.05, band=0, stride=1))
+    base = ColorBase(ColorBaseConfig(cell=0.05, band=0, stride=1, normal_px=0))  # at its centre, not its foot
     base.fuse(stripes, near_wall, INTR, FRONT)
     keys = base.keys[:base.n]
     ijk = np.stack([(keys >> (21 * a)) & ((1 << 21) - 1) for a in range(3)], 1) - (1 << 20)
@@ -58,6 +58,42 @@ def test_a_cell_takes_the_colour_and_depth_of_the_pixel_its_centre_projects_into
     assert np.abs(base.cells[:base.n][inside, 0] - expected).max() < 1e-6
     # and its signed distance is its centre's in front of that pixel's depth (0.5 m, along +y here)
     assert np.abs(base.cells[:base.n][inside, 4] - (0.5 - z[inside])).max() < 1e-5
+
+
+def _striped_wall_view(intr: Intrinsics, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colour, depth and pose of a camera at ``eye`` looking at the wall y = 2 m (its middle at the
+    origin's x): black and white stripes 3 cm wide across x."""
+    from h3edge.geometry.camera import pixel_rays_world
+
+    pose = look_at(eye, np.array([0.0, 2.0, 0.0]))
+    o, d = pixel_rays_world(intr, pose)
+    t = (2.0 - o[1]) / d[..., 1]  # z-depth: the rays have unit camera z
+    x = o[0] + t * d[..., 0]
+    color = np.repeat(((np.floor(x / 0.03) % 2) * 255).astype(np.uint8)[..., None], 3, axis=2)
+    return color, t.astype(np.float32), pose
+
+
+def test_a_cell_takes_the_colour_of_the_surface_point_nearest_its_centre():
+    """A wall midway between two layers of cell centres (y = 2 m, centres 5 mm either side), fused
+    from views 40-60 degrees off its normal: read at its own centre, each view gives a cell off the
+    surface the colour of another point, up to a cell away (the stripes blur); read at its foot on
+    the surface (the plane the pixel's neighbours span), every view agrees (D53-12)."""
+    intr = Intrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
+    views = [_striped_wall_view(intr, np.array([x, y, 0.3])) for x, y in [(-1.6, 0.6), (1.6, 0.6), (-2.2, 1.0),
+                                                                            (2.2, 1.0)]]
+    xs = np.linspace(-0.2, 0.2, 401)
+    on_wall = np.stack([xs, np.full_like(xs, 2.0), np.full_like(xs, 0.05)], 1)
+    truth = (np.floor(xs / 0.03) % 2).astype(np.float32)
+    clear = np.abs(xs / 0.03 - np.round(xs / 0.03)) * 0.03 > 0.006  # not within a cell of a stripe's edge
+    errors = {}
+    for normal_px in (0, 2):
+        base = ColorBase(ColorBaseConfig(cell=0.01, band=1, stride=1, normal_px=normal_px))
+        for color, depth, pose in views:
+            base.fuse(color, depth, intr, pose)
+        rgb, known = base.sample(torch.from_numpy(on_wall))
+        assert known.all()
+        errors[normal_px] = np.abs(rgb[:, 0].numpy() - truth)[clear].mean()
+    assert errors[2] < 0.05 < errors[0]
 
 
 def test_a_frame_fuses_the_signed_distance_of_the_cells_around_its_depth():

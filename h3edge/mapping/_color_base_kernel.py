@@ -86,17 +86,49 @@ def rebuild_slots(keys, n, capacity):
     return slots
 
 
+@nb.njit(inline="always")
+def _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, reach):
+    """Unit normal (camera frame) of the surface at pixel (u, v) of depth ``z`` (its ray (xc, yc, 1)),
+    spanned by the points of the pixels ``reach`` to its left and right, above and below; (0, 0, 0)
+    where ``reach`` is 0, one of them lies outside the image or has no depth, or one differs from
+    ``z`` by more than 5 % of it a pixel (a depth edge, not the surface's slope)."""
+    h, w = depth.shape
+    if reach <= 0 or u < reach or v < reach or u + reach >= w or v + reach >= h:
+        return 0.0, 0.0, 0.0
+    zl, zr, zu, zd = depth[v, u - reach], depth[v, u + reach], depth[v - reach, u], depth[v + reach, u]
+    lim = 0.05 * z * reach
+    if not (zl > 0.0 and zr > 0.0 and zu > 0.0 and zd > 0.0) or max(abs(zl - z), abs(zr - z), abs(zu - z),
+                                                                  abs(zd - z)) > lim:
+        return 0.0, 0.0, 0.0
+    # tangents: right minus left, below minus above (each point on its own pixel's ray)
+    ax = (u + reach + 0.5 - cx) / fx * zr - (u - reach + 0.5 - cx) / fx * zl
+    ay, az = yc * (zr - zl), zr - zl
+    bx, bz = xc * (zd - zu), zd - zu
+    by = (v + reach + 0.5 - cy) / fy * zd - (v - reach + 0.5 - cy) / fy * zu
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if not norm > 0.0:
+        return 0.0, 0.0, 0.0
+    return nx / norm, ny / norm, nz / norm
+
+
 @nb.njit(cache=True, nogil=True)
 def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, max_stride, reach, cell, band,
-               max_weight):
+               max_weight, normal_px):
     """Fuse one frame: each pixel with valid depth z whose column and row are multiples of its
     stride s(z) = clip(floor(``reach`` / z), 1, ``max_stride``) (fused pixels at most reach / f
     apart on the surface, wherever it is) reaches the cells at z-depths z + k * ``cell``,
     k = -band..band, along its ray (pixel centre; ``rot``, ``trans``: camera to world). Each cell
-    reached takes the colour (uint8 RGB -> [0, 1]) of the pixel its centre projects into and the
+    reached takes the colour (uint8 RGB -> [0, 1]) of the pixel that the surface point nearest its
+    centre projects into, the foot of the centre on the plane through the reaching pixel's point
+    with the normal its neighbours ``normal_px`` pixels away span (:func:`_pixel_normal`; the
+    centre itself where they do not: 0, an image border, a missing or distant neighbour), and the
     signed distance of its centre in front of that pixel's depth along the camera's z axis (m,
     positive in front); where that pixel has no depth or lies across a depth edge (> 2 (band + 1)
-    cells from z), the reaching pixel's colour and depth. Both as running averages (``cells`` rows:
+    cells from z), the reaching pixel's colour and depth. (A cell off the surface read at its own
+    centre takes each view's colour from a different surface point, up to a cell away times the
+    tangent of the view's incidence: a blur a base whose cell centres lie on the surface does not
+    have, D53-12.) Both as running averages (``cells`` rows:
     R, G, B, weight, signed distance) whose weight grows by one a fusion up to ``max_weight`` (a
     cell the previous pixel's sample reached already is not fused again). New cells take rows
     from ``n`` up to ``len(keys)``; past it they are refused. Returns (rows in use, cells refused)."""
@@ -122,6 +154,8 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
             r = color[v, u, 0] / 255.0
             g = color[v, u, 1] / 255.0
             b = color[v, u, 2] / 255.0
+            nx, ny, nz = _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, normal_px)
+            px0, py0 = xc * z, yc * z  # the reaching pixel's point (camera frame), z its depth
             for k in range(-band, band + 1):
                 zz = z + k * cell
                 if zz <= 0.0:
@@ -151,11 +185,16 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                 # pixel's colour and depth (projective, as TSDF fusion), not the colour of the ray
                 # that reached it, which lies up to a cell beside the centre, more at grazing angles
                 ox, oy, oz = (ix + 0.5) * cell - trans[0], (iy + 0.5) * cell - trans[1], (iz + 0.5) * cell - trans[2]
+                xf = ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]
+                yf = ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]
                 zc = ox * rot[0, 2] + oy * rot[1, 2] + oz * rot[2, 2]
+                # its foot on the reaching pixel's plane (nx = ny = nz = 0: the centre itself)
+                off = (xf - px0) * nx + (yf - py0) * ny + (zc - z) * nz
+                xf, yf, zf = xf - off * nx, yf - off * ny, zc - off * nz
                 cr, cg, cb, cz = r, g, b, z
-                if zc > 0.0:
-                    pu = math.floor(fx * (ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]) / zc + cx)
-                    pv = math.floor(fy * (ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]) / zc + cy)
+                if zf > 0.0:
+                    pu = math.floor(fx * xf / zf + cx)
+                    pv = math.floor(fy * yf / zf + cy)
                     if 0 <= pu < w and 0 <= pv < h:
                         zp = depth[pv, pu]
                         if zp > 0.0 and abs(zp - z) <= same_surface:  # not across a depth edge

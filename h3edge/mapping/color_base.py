@@ -73,6 +73,9 @@ class ColorBaseConfig:
     """cells at most (BYTES_PER_CELL each); new ones past it are refused"""
     max_weight: float = 64.0
     """observations a cell's running average remembers (lighting drift)"""
+    normal_px: int = 2
+    """px: a cell takes the colour where the surface point nearest its centre projects, on the plane the reaching
+    pixel's neighbours this far away span (0: where its centre projects, as TSDF fusion); paper: no base; D53-12"""
     fuse_edges: bool = False
     """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
     outline of a foreground object); paper: no base (false); D53-11"""
@@ -80,8 +83,9 @@ class ColorBaseConfig:
     def __post_init__(self) -> None:
         if not self.cell >= 0:
             raise ValueError(f"color_base.cell must be >= 0 m (0: off), got {self.cell}")
-        if self.band < 0 or self.stride < 1 or self.max_cells < 1 or not self.max_weight >= 1:
-            raise ValueError("color_base: band >= 0, stride >= 1, max_cells >= 1 and max_weight >= 1 are required")
+        if self.band < 0 or self.stride < 1 or self.max_cells < 1 or not self.max_weight >= 1 or self.normal_px < 0:
+            raise ValueError("color_base: band >= 0, stride >= 1, max_cells >= 1, max_weight >= 1 and normal_px >= 0 "
+                             "are required")
 
     @property
     def enabled(self) -> bool:
@@ -130,7 +134,7 @@ class ColorBase:
                                      np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color, np.uint8),
                                      np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
                                      float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
-                                     c.stride, reach, c.cell, c.band, c.max_weight)
+                                     c.stride, reach, c.cell, c.band, c.max_weight, c.normal_px)
         self.refused += refused
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
