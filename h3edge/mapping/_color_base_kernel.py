@@ -87,18 +87,18 @@ def rebuild_slots(keys, n, capacity):
 
 
 @nb.njit(inline="always")
-def _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, reach):
+def _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, reach, flat):
     """Unit normal (camera frame) of the surface at pixel (u, v) of depth ``z`` (its ray (xc, yc, 1)),
     spanned by the points of the pixels ``reach`` to its left and right, above and below; (0, 0, 0)
-    where ``reach`` is 0, one of them lies outside the image or has no depth, or one differs from
-    ``z`` by more than 5 % of it a pixel (a depth edge, not the surface's slope)."""
+    where ``reach`` is 0, one of them lies outside the image or has no depth, or the three pixels
+    along a row or a column do not lie on one plane: their depths' second difference above ``flat``
+    (m; a depth edge or a crease between them, where the normal would not be the surface's)."""
     h, w = depth.shape
     if reach <= 0 or u < reach or v < reach or u + reach >= w or v + reach >= h:
         return 0.0, 0.0, 0.0
     zl, zr, zu, zd = depth[v, u - reach], depth[v, u + reach], depth[v - reach, u], depth[v + reach, u]
-    lim = 0.05 * z * reach
-    if not (zl > 0.0 and zr > 0.0 and zu > 0.0 and zd > 0.0) or max(abs(zl - z), abs(zr - z), abs(zu - z),
-                                                                  abs(zd - z)) > lim:
+    if not (zl > 0.0 and zr > 0.0 and zu > 0.0 and zd > 0.0) or max(abs(zl + zr - 2.0 * z),
+                                                                  abs(zu + zd - 2.0 * z)) > flat:
         return 0.0, 0.0, 0.0
     # tangents: right minus left, below minus above (each point on its own pixel's ray)
     ax = (u + reach + 0.5 - cx) / fx * zr - (u - reach + 0.5 - cx) / fx * zl
@@ -122,7 +122,8 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
     reached takes the colour (uint8 RGB -> [0, 1]) of the pixel that the surface point nearest its
     centre projects into, the foot of the centre on the plane through the reaching pixel's point
     with the normal its neighbours ``normal_px`` pixels away span (:func:`_pixel_normal`; the
-    centre itself where they do not: 0, an image border, a missing or distant neighbour), and the
+    centre itself where they do not: 0, an image border, a missing neighbour, or the three pixels
+    of a row or column more than a cell off one plane), and the
     signed distance of its centre in front of that pixel's depth along the camera's z axis (m,
     positive in front); where that pixel has no depth or lies across a depth edge (> 2 (band + 1)
     cells from z), the reaching pixel's colour and depth. (A cell off the surface read at its own
@@ -154,7 +155,7 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
             r = color[v, u, 0] / 255.0
             g = color[v, u, 1] / 255.0
             b = color[v, u, 2] / 255.0
-            nx, ny, nz = _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, normal_px)
+            nx, ny, nz = _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, normal_px, cell)
             px0, py0 = xc * z, yc * z  # the reaching pixel's point (camera frame), z its depth
             for k in range(-band, band + 1):
                 zz = z + k * cell

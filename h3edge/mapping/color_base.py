@@ -73,9 +73,10 @@ class ColorBaseConfig:
     """cells at most (BYTES_PER_CELL each); new ones past it are refused"""
     max_weight: float = 64.0
     """observations a cell's running average remembers (lighting drift)"""
-    normal_px: int = 2
+    normal_px: int = 4
     """px: a cell takes the colour where the surface point nearest its centre projects, on the plane the reaching
-    pixel's neighbours this far away span (0: where its centre projects, as TSDF fusion); paper: no base; D53-12"""
+    pixel's neighbours this far away span (0: where its centre projects, as TSDF fusion; 1-2 px normals, noisier,
+    cost the photographic scene 0.1-0.2 dB); paper: no base; D53-12"""
     fuse_edges: bool = False
     """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
     outline of a foreground object); paper: no base (false); D53-11"""
