@@ -182,9 +182,9 @@ def fuse_frame(slots, keys, cells, n, depth, color, rot, trans, fx, fy, cx, cy, 
                     slots[s] = row
                     cells[row, 3] = 0.0
                 last_key[k + band] = key
-                # the cell centre in this camera, and the pixel it projects into: the cell takes that
-                # pixel's colour and depth (projective, as TSDF fusion), not the colour of the ray
-                # that reached it, which lies up to a cell beside the centre, more at grazing angles
+                # the cell centre in this camera, and the pixel its foot on the surface projects into:
+                # the cell takes that pixel's colour and depth, not the colour of the ray that reached
+                # it, which lies up to a cell beside the centre, more at grazing angles
                 ox, oy, oz = (ix + 0.5) * cell - trans[0], (iy + 0.5) * cell - trans[1], (iz + 0.5) * cell - trans[2]
                 xf = ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]
                 yf = ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]

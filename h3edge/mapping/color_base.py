@@ -11,9 +11,11 @@ detail, unseen cells).
 Cells (``cell`` metres a side) exist only where depth put a surface: each frame's valid pixels
 (every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) reach
 the cells at their measured depth and ``band`` cells in front of and behind it along their ray
-(the volume the render weights live in); each cell reached takes the colour of the pixel its own
-centre projects into (projective, as TSDF fusion: the reaching ray's colour blurs the base by up to
-a cell, more at grazing angles). The cells live in an open-addressed hash table
+(the volume the render weights live in); each cell reached takes the colour of the pixel that the
+surface point nearest its centre projects into (its foot on the plane the pixel's neighbours
+``normal_px`` away span, D53-12; the reaching ray's own colour blurs the base by up to a cell, more
+at grazing angles, and the centre's projection, as TSDF fusion takes it, by up to the centre's
+distance from the surface times the tangent of each view's incidence). The cells live in an open-addressed hash table
 (:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` of them (new cells past it are
 refused and counted). Colour is read with trilinear weights between cell centres, renormalised over
 the cells that hold one (or, in a gap between fused pixels, the mean of the known cells around).
@@ -76,7 +78,7 @@ class ColorBaseConfig:
     normal_px: int = 4
     """px: a cell takes the colour where the surface point nearest its centre projects, on the plane the reaching
     pixel's neighbours this far away span (0: where its centre projects, as TSDF fusion; 1-2 px normals, noisier,
-    cost the photographic scene 0.1-0.2 dB); paper: no base; D53-12"""
+    cost the photographic scene about 0.2 dB); paper: no base; D53-12"""
     fuse_edges: bool = False
     """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
     outline of a foreground object); paper: no base (false); D53-11"""
