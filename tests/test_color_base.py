@@ -160,6 +160,8 @@ def test_bad_settings_are_refused_when_the_profile_loads():
         ColorBaseConfig(cell=-0.01)
     with pytest.raises(ValueError):
         ColorBaseConfig(cell=0.01, stride=0)
+    with pytest.raises(ValueError, match="normal_px"):
+        ColorBaseConfig(cell=0.01, normal_px=-1)
 
 
 def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene):
