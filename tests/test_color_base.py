@@ -25,6 +25,15 @@ def halves(left: int, right: int) -> np.ndarray:
 WALL = np.full((INTR.height, INTR.width), 2.0, np.float32)
 
 
+def held(base: ColorBase) -> tuple[np.ndarray, np.ndarray]:
+    """The cells a base holds: integer coordinates (N, 3) and rows (N, 5): R, G, B, weight, distance."""
+    from h3edge.mapping.voxels import unpack
+
+    state = base.state_dict()
+    rows = np.concatenate([state["rgb"], state["weight"][:, None], state["distance"][:, None]], 1)
+    return unpack(state["keys"]), rows
+
+
 def test_a_frame_colours_the_cells_at_its_depth_and_the_band_around_it_only():
     base = ColorBase(ColorBaseConfig(cell=0.01, band=1, stride=1))
     base.fuse(halves(40, 200), WALL, INTR, FRONT)
@@ -48,16 +57,15 @@ def test_a_cell_takes_the_colour_and_depth_of_the_pixel_its_centre_projects_into
     stripes[:, 1::2] = 255
     base = ColorBase(ColorBaseConfig(cell=0.05, band=0, stride=1, normal_px=0))  # at its centre, not its foot
     base.fuse(stripes, near_wall, INTR, FRONT)
-    keys = base.keys[:base.n]
-    ijk = np.stack([(keys >> (21 * a)) & ((1 << 21) - 1) for a in range(3)], 1) - (1 << 20)
+    ijk, rows = held(base)
     uv, z = project((ijk + 0.5) * 0.05, INTR, FRONT)
     pix = np.floor(uv).astype(int)
     inside = (z > 0) & (pix[:, 0] >= 0) & (pix[:, 0] < INTR.width) & (pix[:, 1] >= 0) & (pix[:, 1] < INTR.height)
     assert inside.mean() > 0.9
     expected = stripes[pix[inside, 1], pix[inside, 0], 0] / 255.0
-    assert np.abs(base.cells[:base.n][inside, 0] - expected).max() < 1e-6
+    assert np.abs(rows[inside, 0] - expected).max() < 1e-6
     # and its signed distance is its centre's in front of that pixel's depth (0.5 m, along +y here)
-    assert np.abs(base.cells[:base.n][inside, 4] - (0.5 - z[inside])).max() < 1e-5
+    assert np.abs(rows[inside, 4] - (0.5 - z[inside])).max() < 1e-5
 
 
 def _striped_wall_view(intr: Intrinsics, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,7 +85,9 @@ def test_a_cell_takes_the_colour_of_the_surface_point_nearest_its_centre():
     """A wall midway between two layers of cell centres (y = 2 m, centres 5 mm either side), fused
     from views 40-60 degrees off its normal: read at its own centre, each view gives a cell off the
     surface the colour of another point, up to a cell away (the stripes blur); read at its foot on
-    the surface (the plane the pixel's neighbours span), every view agrees (D53-12)."""
+    the surface (the plane the pixel's neighbours span), every view agrees (D53-12) but for the
+    cells a stripe's edge crosses, whose feet fall in a pixel either side by view (the reads here
+    keep 6 mm from an edge, but their trilinear corners do not: 0.05 against 0.21)."""
     intr = Intrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
     views = [_striped_wall_view(intr, np.array([x, y, 0.3])) for x, y in [(-1.6, 0.6), (1.6, 0.6), (-2.2, 1.0),
                                                                             (2.2, 1.0)]]
@@ -93,7 +103,7 @@ def test_a_cell_takes_the_colour_of_the_surface_point_nearest_its_centre():
         rgb, known = base.sample(torch.from_numpy(on_wall))
         assert known.all()
         errors[normal_px] = np.abs(rgb[:, 0].numpy() - truth)[clear].mean()
-    assert errors[4] < 0.05 < errors[0]
+    assert errors[4] < 0.1 < errors[0]
 
 
 def test_a_frame_fuses_the_signed_distance_of_the_cells_around_its_depth():
@@ -108,6 +118,49 @@ def test_a_frame_fuses_the_signed_distance_of_the_cells_around_its_depth():
     assert dist[:3] == pytest.approx([0.025, 0.0, -0.025], abs=2e-3)
 
 
+def test_every_frame_that_sees_a_cell_near_its_depth_fuses_it_once():
+    """As TSDF fusion (D53-13): a frame measuring the wall 7 mm farther than the frame that made its
+    cells still fuses every cell within ``trunc`` of its depth in the blocks it reaches, those 2.2 cm
+    in front of it too (past the band its own pixel samples reach), and a frame adds one observation
+    to a cell however many of its pixels reach it (pixels 7 mm apart on the wall here, cells 1 cm)."""
+    intr = Intrinsics(320, 240, 300.0, 300.0, 160.0, 120.0)
+    wall = np.full((intr.height, intr.width), 2.0, np.float32)
+    grey = np.full((intr.height, intr.width, 3), 100, np.uint8)
+    for trunc in (0.01, 0.04):
+        base = ColorBase(ColorBaseConfig(cell=0.01, band=1, stride=1, normal_px=0, trunc=trunc))
+        base.fuse(grey * 0, wall, intr, FRONT)
+        ijk, first = held(base)
+        assert len(first) > 10000 and (first[:, 3] == 1).all()  # once a frame
+        assert np.abs((ijk[:, 1] + 0.5) * 0.01 - 2.0).max() < 0.015 + 1e-9  # the band: 1.5 cells along the ray (+y)
+        base.fuse(grey, wall + 0.007, intr, FRONT)
+        ijk2, rows = held(base)
+        made_first = {tuple(c) for c in ijk.tolist()}
+        old = np.array([tuple(c) in made_first for c in ijk2.tolist()])
+        assert old.sum() == len(ijk)
+        near = np.abs(2.007 - (ijk2[old, 1] + 0.5) * 0.01) <= trunc
+        assert (rows[old][near, 3] == 2).all() and (rows[old][~near, 3] == 1).all()
+        assert rows[old][near, 0] * 255 == pytest.approx(np.full(near.sum(), 50.0), abs=0.5)
+        assert near.all() if trunc == 0.04 else 0 < near.mean() < 0.5
+
+
+def test_a_block_table_too_small_for_a_frame_grows_and_fuses_it_whole(monkeypatch):
+    import h3edge.mapping.color_base as color_base
+
+    ref = ColorBase(ColorBaseConfig(cell=0.01, stride=1))
+    ref.fuse(halves(40, 200), WALL, INTR, FRONT)
+    monkeypatch.setattr(color_base, "_MIN_BLOCKS", 4)
+    small = ColorBase(ColorBaseConfig(cell=0.01, stride=1))
+    assert len(small.bkeys) == 4 < ref.nblocks
+    small.fuse(halves(40, 200), WALL, INTR, FRONT)
+    assert small.refused == 0 and small.nblocks == ref.nblocks and len(small) == len(ref)
+    for a, b in zip(held(small), held(ref)):
+        assert np.array_equal(np.sort(a, axis=0), np.sort(b, axis=0))
+    # at its cap (max_cells / 24 blocks) the points reaching further blocks are refused and counted
+    capped = ColorBase(ColorBaseConfig(cell=0.01, stride=1, max_cells=96))
+    capped.fuse(halves(40, 200), WALL, INTR, FRONT)
+    assert capped.nblocks == 4 and capped.refused > 0 and 0 < len(capped) <= 4 * 64
+
+
 def test_colour_is_a_running_average_that_forgets_past_max_weight():
     base = ColorBase(ColorBaseConfig(cell=0.01, stride=1, max_weight=4.0))
     centre = torch.from_numpy(backproject(WALL, INTR, FRONT)[24, 8][None])
@@ -117,12 +170,6 @@ def test_colour_is_a_running_average_that_forgets_past_max_weight():
     for _ in range(50):  # weight capped at 4: the old black fades out
         base.fuse(halves(100, 100), WALL, INTR, FRONT)
     assert float(base.sample(centre)[0][0, 0]) * 255 == pytest.approx(100.0, abs=0.5)
-
-
-def test_cells_past_max_cells_are_refused_and_counted():
-    base = ColorBase(ColorBaseConfig(cell=0.01, band=0, stride=1, max_cells=100))
-    base.fuse(halves(40, 200), WALL, INTR, FRONT)
-    assert len(base) == 100 and base.refused > 0
 
 
 def test_state_round_trip_reads_the_same_colours():
@@ -252,7 +299,7 @@ def test_the_base_is_saved_with_the_map_and_restored(tiny_scene):
     meta, arrays = m.state_dict()
     r = MapEngine.from_state_dict(st, meta, arrays)
     assert len(r.color_base) == len(m.color_base) > 0 and r.field.color_base is r.color_base
-    assert len(r.color_base.slots) >= 4 * len(r.color_base)  # restored with its slots a quarter full at most
+    assert len(r.color_base.bslots) >= 4 * r.color_base.nblocks  # restored with its slots a quarter full at most
     f = seq.heldout[0]
     for a, b in zip(m.render(f.intrinsics, f.pose), r.render(f.intrinsics, f.pose)):
         assert np.array_equal(a, b)

@@ -11,14 +11,19 @@ detail, unseen cells).
 Cells (``cell`` metres a side) exist only where depth put a surface: each frame's valid pixels
 (every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) reach
 the cells at their measured depth and ``band`` cells in front of and behind it along their ray
-(the volume the render weights live in); each cell reached takes the colour of the pixel that the
-surface point nearest its centre projects into (its foot on the plane the pixel's neighbours
-``normal_px`` away span, D53-12; the reaching ray's own colour blurs the base by up to a cell, more
-at grazing angles, and the centre's projection, as TSDF fusion takes it, by up to the centre's
-distance from the surface times the tangent of each view's incidence). The cells live in an open-addressed hash table
-(:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` of them (new cells past it are
-refused and counted). Colour is read with trilinear weights between cell centres, renormalised over
-the cells that hold one (or, in a gap between fused pixels, the mean of the known cells around).
+(the volume the render weights live in), which takes a row for each it reaches first. Then, as
+TSDF fusion does, every cell held in the 4^3 blocks those pixels reached whose centre lies within
+``trunc`` of the depth of the pixel it projects into fuses that frame, once (D53-13: a cell is
+updated by every frame that sees it near its surface, not only by those whose sparse pixel samples
+fell into it; on the real set a surface cell's colour averaged a few noisy frames). It takes the
+colour where the surface point nearest its centre projects (its foot on the plane the pixel's
+neighbours ``normal_px`` away span, D53-12; the centre's own projection, as TSDF fusion takes it,
+blurs the base by up to the centre's distance from the surface times the tangent of each view's
+incidence). The cells live in an open-addressed hash table, and each 4^3 block's cells are listed
+in a block table (:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` cells (new cells
+past it are refused and counted). Colour is read with trilinear weights between cell centres,
+renormalised over the cells that hold one (or, in a gap between fused pixels, the mean of the known
+cells around).
 
 Each cell also fuses its centre's signed distance in front of that pixel's depth (along the fusing
 camera's z axis), a TSDF whose band is the colour's: :meth:`ColorBase.sample_distance` reads it,
@@ -32,12 +37,13 @@ sigmoid(logit(b) + z - z0) with z the colour MLP's logit and z0 its logit at zer
 base's, relative to its output where it has learned nothing: a cell the texture grids have not
 learned renders the base unchanged; elsewhere the MLP's colour is used as it is.
 
-Cost: 44 bytes a cell (a key, one RGB + weight + distance row, and the slot table at most a quarter full); a
-640x480 frame at stride 3 with band 1 touches ~100k cells (5-10 ms in one numba pass on this
-2-core machine). The pass is bound by memory latency, so the layout keeps a cell's lookup to few
-cache lines: a probe starts where its 4^3 block's cells sit side by side in the slot table, and a
-cell's colour, weight and distance share a row (a warm frame re-fused on the photographic scene: 10.6 ->
-7.5 and 9.8 -> 9.0 ms).
+Cost: 66 bytes a cell at most (a key, one RGB + weight + distance row, the slot table at most a quarter full, its
+block's row, and a share of the block table: 288 bytes a block, planned at 16 cells a block; the real set fills 32).
+A 640x480 frame at stride 3 with band 1 reaches ~100k cells and its ~6,000 blocks hold ~200k; on the real set
+on this 2-core machine the reaching pass takes 6.6 ms and the fusing pass 9.0 ms (15.5 on one thread; the pass
+before D53-13, which fused only the cells reached, took 10.5 ms in all). The passes are bound by memory
+latency, so the layout keeps a cell's lookup to few cache lines: a probe starts where its 4^3 block's cells sit
+side by side in the slot table, and a cell's colour, weight and distance share a row.
 """
 
 from __future__ import annotations
@@ -49,17 +55,19 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping._color_base_kernel import distance_volume, fuse_frame, rebuild_slots, sample_cells, sample_distance
+from h3edge.mapping._color_base_kernel import (distance_volume, fuse_cells, load_cells, reach_blocks,
+                                              rebuild_block_slots, sample_cells, sample_distance)
 
-# slots per row, at least: the slot table at most a quarter full. Most reads miss (a render's search
-# samples in front of the surface), and a miss walks the run of occupied slots from its home, which
-# the 4^3 blocks' neighbouring homes make long at half load: a restored real map (878k cells), 1M
-# points read at load 0.42 / 0.21 / 0.10: 2.52 / 0.53 / 0.35 s, its render 48 -> 22 s at 0.10
-_SLOTS_PER_ROW = 4
-ROW_BYTES = 28  # a cell's row: key 8 + RGB 12 + weight 4 + signed distance 4 (what a checkpoint holds)
-BYTES_PER_CELL = ROW_BYTES + 4 * _SLOTS_PER_ROW  # the row and its slots
+# block slots per block, at least: the slot table at most a quarter full. Most reads miss (a render's
+# search samples in front of the surface), and a miss walks the run of occupied slots from its home
+_SLOTS_PER_BLOCK = 4
+ROW_BYTES = 28  # a held cell in a checkpoint: key 8 + RGB 12 + weight 4 + signed distance 4
+ROW_BLOCK_BYTES = 20  # a cell's row in the table: RGB 12 + weight 4 + signed distance 4 (held or not)
+BLOCK_BYTES = 64 * ROW_BLOCK_BYTES + 8 + 8 + 4 * _SLOTS_PER_BLOCK  # a 4^3 block: its 64 rows, key, stamp, slots
+PLANNED_CELLS_PER_BLOCK = 24  # blocks at most max_cells / this (a frame's band fills 27-32 a block: loft, real)
+BYTES_PER_CELL = BLOCK_BYTES // PLANNED_CELLS_PER_BLOCK  # at the block cap
 REACH_CELLS = 2.0  # fused pixels lie at most this many cells apart on the surface (the reads bridge gaps)
-_MIN_ROWS = 1 << 15
+_MIN_BLOCKS = 1 << 12  # blocks at least (5.4 MB)
 
 
 @dataclass(frozen=True)
@@ -72,13 +80,18 @@ class ColorBaseConfig:
     """pixel stride (both axes) of the pixels a frame fuses, at most: less at depths where the fused pixels would lie
     more than 2 cells apart on the surface"""
     max_cells: int = 4_000_000
-    """cells at most (BYTES_PER_CELL each); new ones past it are refused"""
+    """cells planned at most: the base holds up to max_cells / 24 4^3 blocks of cells (BYTES_PER_CELL a cell
+    there); the points of frames that would reach further blocks are refused and counted"""
     max_weight: float = 64.0
     """observations a cell's running average remembers (lighting drift)"""
     normal_px: int = 4
     """px: a cell takes the colour where the surface point nearest its centre projects, on the plane the reaching
     pixel's neighbours this far away span (0: where its centre projects, as TSDF fusion; 1-2 px normals, noisier,
     cost the photographic scene about 0.2 dB); paper: no base; D53-12"""
+    trunc: float = 0.04
+    """m: a frame fuses its colour and signed distance into every cell it sees with its centre this near its
+    depth, in front or behind (in the 4^3 blocks its pixels reach), once a frame; Open3D's TSDF peer: 0.04 (4
+    voxels); paper: no base; D53-13"""
     fuse_edges: bool = False
     """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
     outline of a foreground object); paper: no base (false); D53-11"""
@@ -89,6 +102,8 @@ class ColorBaseConfig:
         if self.band < 0 or self.stride < 1 or self.max_cells < 1 or not self.max_weight >= 1 or self.normal_px < 0:
             raise ValueError("color_base: band >= 0, stride >= 1, max_cells >= 1, max_weight >= 1 and normal_px >= 0 "
                              "are required")
+        if not self.trunc > 0:
+            raise ValueError(f"color_base.trunc must be > 0 m, got {self.trunc}")
 
     @property
     def enabled(self) -> bool:
@@ -100,45 +115,65 @@ class ColorBaseConfig:
 
 
 class ColorBase:
-    """The fused colour cells (host numpy arrays; CPU numba kernels). :meth:`fuse` per integrated
-    frame, :meth:`sample` wherever colour is read."""
+    """The fused colour cells (host numpy arrays; CPU numba kernels) in 4^3 blocks, as a voxel block
+    grid: :meth:`fuse` per integrated frame, :meth:`sample` wherever colour is read."""
 
     def __init__(self, cfg: ColorBaseConfig):
         self.cfg = cfg
-        self.n = 0  # rows in use
-        self.refused = 0  # new cells refused at max_cells
-        self._alloc(min(_MIN_ROWS, cfg.max_cells))
+        self.n = 0  # cells held (weight > 0)
+        self.refused = 0  # points of frames whose block the block cap refused
+        self._frames = 0  # frames fused (the blocks' touch stamps)
+        self.nblocks = 0  # blocks held
+        self._alloc(min(_MIN_BLOCKS, self.max_blocks))
 
-    def _alloc(self, rows: int) -> None:
-        keys, cells = np.zeros(rows, np.int64), np.zeros((rows, 5), np.float32)
-        if self.n:
-            keys[:self.n], cells[:self.n] = self.keys[:self.n], self.cells[:self.n]
-        self.keys, self.cells = keys, cells  # a cell's row: R, G, B in [0, 1], weight, signed distance (m)
-        capacity = 1 << max(1, int(np.ceil(np.log2(_SLOTS_PER_ROW * rows))))
-        self.slots = rebuild_slots(self.keys, self.n, capacity)
+    @property
+    def max_blocks(self) -> int:
+        """Blocks at most: ``max_cells`` / :data:`PLANNED_CELLS_PER_BLOCK` (at least :data:`_MIN_BLOCKS`)."""
+        return max(_MIN_BLOCKS, self.cfg.max_cells // PLANNED_CELLS_PER_BLOCK)
+
+    def _alloc(self, blocks: int) -> None:
+        """Room for ``blocks`` blocks, the blocks held kept (new arrays: a reader holding the old ones
+        keeps them whole)."""
+        nb_ = self.nblocks
+        bkeys, cells = np.zeros(blocks, np.int64), np.zeros((64 * blocks, 5), np.float32)
+        stamp = np.full(blocks, -1, np.int64)  # the frame that last touched each block
+        if nb_:
+            bkeys[:nb_], cells[:64 * nb_], stamp[:nb_] = self.bkeys[:nb_], self.cells[:64 * nb_], self.stamp[:nb_]
+        capacity = 1 << max(1, int(np.ceil(np.log2(_SLOTS_PER_BLOCK * blocks))))
+        bslots = rebuild_block_slots(bkeys, nb_, capacity)
+        # what readers on other threads take, in one assignment: a slot table and the arrays it indexes
+        self._table = (bslots, bkeys, cells)
+        self.bslots, self.bkeys, self.cells, self.stamp = bslots, bkeys, cells, stamp  # a row: R, G, B, weight, distance
 
     def __len__(self) -> int:
         return self.n
 
     @property
     def nbytes(self) -> int:
-        return self.keys.nbytes + self.cells.nbytes + self.slots.nbytes
+        return self.bkeys.nbytes + self.bslots.nbytes + self.cells.nbytes + self.stamp.nbytes
 
     def fuse(self, color: np.ndarray, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> None:
         """Fuse colour uint8 (H, W, 3) at depth float32 (H, W) metres (0 = invalid), camera-to-world
         ``c2w`` (4x4, OpenCV optical), host arrays."""
         c = self.cfg
-        worst = depth.size * (2 * c.band + 1)  # every pixel at stride 1
-        if self.n + worst > len(self.keys) and len(self.keys) < c.max_cells:
-            self._alloc(min(c.max_cells, max(2 * len(self.keys), self.n + worst)))
         pose = np.asarray(c2w, np.float64)
+        rot, trans = np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3])
+        depth = np.ascontiguousarray(depth, np.float32)
         reach = REACH_CELLS * c.cell * min(intr.fx, intr.fy)
-        self.n, refused = fuse_frame(self.slots, self.keys, self.cells, self.n,
-                                     np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color, np.uint8),
-                                     np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
-                                     float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
-                                     c.stride, reach, c.cell, c.band, c.max_weight, c.normal_px)
-        self.refused += refused
+        fx, fy, cx, cy = float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy)
+        while True:  # until the block table held every block the frame reached (or is at its cap)
+            touched = np.empty(len(self.bkeys), np.int32)
+            grow = len(self.bkeys) < self.max_blocks
+            self.nblocks, ntouched, refused, full = reach_blocks(
+                self.bslots, self.bkeys, self.cells, self.nblocks, depth, rot, trans, fx, fy, cx, cy, c.stride, reach,
+                c.cell, c.band, self.stamp, self._frames, touched, grow)
+            self._frames += 1  # (a pass run again touches every block afresh)
+            self.refused += refused
+            if not full:
+                break
+            self._alloc(min(self.max_blocks, 2 * len(self.bkeys)))
+        self.n += fuse_cells(touched[:ntouched], self.bkeys, self.cells, depth, np.ascontiguousarray(color, np.uint8),
+                             rot, trans, fx, fy, cx, cy, c.cell, c.band, c.trunc, c.max_weight, c.normal_px)
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour (N, 3) float32 in [0, 1] at world points (N, 3) metres and whether the base knows
@@ -147,7 +182,7 @@ class ColorBase:
         out = np.zeros((len(p), 3), np.float32)
         known = np.zeros(len(p), np.bool_)
         if self.n and len(p):
-            sample_cells(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
+            sample_cells(*self._table, p, self.cfg.cell, out, known)
         dev = points.device
         return torch.from_numpy(out).to(dev), torch.from_numpy(known).to(dev)
 
@@ -161,7 +196,7 @@ class ColorBase:
         if self.n and len(p):
             # every fused cell counts: requiring 2, 4 or 8 observations cost the sim scene's last
             # frame 0.2-1.1 dB and gained the real set nothing once seen-free cells are lifted (D53-4)
-            sample_distance(self.slots, self.keys, self.cells, p, self.cfg.cell, out, known)
+            sample_distance(*self._table, p, self.cfg.cell, out, known)
         return out, known
 
     def distances(self) -> FusedDistances:
@@ -169,12 +204,18 @@ class ColorBase:
         (:class:`FusedDistances`: the base's own table, no copy of its cells)."""
         return FusedDistances(self)
 
+    def _held(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rows of the cells held and their packed cell keys."""
+        rows = np.flatnonzero(self.cells[:64 * self.nblocks, 3] > 0)
+        return rows, _cell_keys(self.bkeys, rows)
+
     def state_dict(self) -> dict[str, np.ndarray]:
-        """The cells in use as host arrays (keys int64 (N,), rgb float32 (N, 3) in [0, 1], weight
-        float32 (N,), signed distance float32 (N,) m) and the refused count; what a checkpoint holds
-        of the base."""
-        return {"keys": self.keys[:self.n].copy(), "rgb": self.cells[:self.n, :3].copy(),
-                "weight": self.cells[:self.n, 3].copy(), "distance": self.cells[:self.n, 4].copy(),
+        """The cells held as host arrays (keys int64 (N,) (packed cell coordinates,
+        :func:`h3edge.mapping.voxels.pack`), rgb float32 (N, 3) in [0, 1], weight float32 (N,), signed
+        distance float32 (N,) m) and the refused count; what a checkpoint holds of the base."""
+        rows, keys = self._held()
+        part = self.cells[rows]
+        return {"keys": keys, "rgb": part[:, :3].copy(), "weight": part[:, 3].copy(), "distance": part[:, 4].copy(),
                 "refused": np.asarray(self.refused, np.int64)}
 
     def load_state_dict(self, arrays: dict[str, np.ndarray]) -> None:
@@ -182,55 +223,81 @@ class ColorBase:
         if "keys" not in arrays:
             arrays = {"keys": np.zeros(0, np.int64), "rgb": np.zeros((0, 3), np.float32),
                       "weight": np.zeros(0, np.float32), "distance": np.zeros(0, np.float32)}
-        keys = np.asarray(arrays["keys"], np.int64)
-        if len(keys) > self.cfg.max_cells:
-            raise ValueError(f"colour base of {len(keys)} cells exceeds color_base.max_cells ({self.cfg.max_cells})")
-        self.n = len(keys)
-        self.keys = keys
+        keys = np.asarray(arrays["keys"], np.int64).reshape(-1)
         # a state from before the distances: NaN, none known (the colours still are)
-        distance = arrays.get("distance", np.full(self.n, np.nan, np.float32))
-        self.cells = np.concatenate([np.asarray(arrays["rgb"], np.float32).reshape(-1, 3),
-                                     np.asarray(arrays["weight"], np.float32).reshape(-1, 1),
-                                     np.asarray(distance, np.float32).reshape(-1, 1)], axis=1)
-        self._alloc(max(min(_MIN_ROWS, self.cfg.max_cells), self.n))  # room to grow, the slots rebuilt
+        distance = arrays.get("distance", np.full(len(keys), np.nan, np.float32))
+        rows = np.concatenate([np.asarray(arrays["rgb"], np.float32).reshape(-1, 3),
+                               np.asarray(arrays["weight"], np.float32).reshape(-1, 1),
+                               np.asarray(distance, np.float32).reshape(-1, 1)], axis=1)
+        if len(rows) != len(keys):
+            raise ValueError(f"colour base state: {len(keys)} keys but {len(rows)} rows")
+        keep = rows[:, 3] > 0
+        keys, rows = keys[keep], rows[keep]
+        blocks = max(_MIN_BLOCKS, len(np.unique(keys_to_blocks(keys))))
+        if blocks > self.max_blocks:
+            raise ValueError(f"colour base of {blocks} blocks exceeds max_cells / {PLANNED_CELLS_PER_BLOCK} "
+                             f"({self.max_blocks})")
+        self.nblocks = 0
+        self._alloc(min(self.max_blocks, 2 * blocks))  # room to grow
+        self.nblocks = load_cells(self.bslots, self.bkeys, self.cells, keys, rows)
+        self.n = len(keys)
         self.refused = int(arrays.get("refused", 0))
+
+
+def keys_to_blocks(keys: np.ndarray) -> np.ndarray:
+    """Packed keys of the 4^3 blocks holding the cells of packed ``keys`` (N,) int64."""
+    from h3edge.mapping.voxels import pack, unpack
+
+    return pack(unpack(keys) >> 2)
+
+
+def _cell_keys(bkeys: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Packed cell keys of block-table ``rows`` (N,) (row 64 b + x + 4 y + 16 z of block b)."""
+    from h3edge.mapping.voxels import pack, unpack
+
+    local = rows & 63
+    ijk = unpack(bkeys[rows >> 6]) * 4 + np.stack([local & 3, (local >> 2) & 3, local >> 4], 1)
+    return pack(ijk)
 
 
 class FusedDistances:
     """The fused signed distances of a :class:`ColorBase`, read in place from the arrays it held
-    when this was taken: its cells a batch at a time (:meth:`batches`: the rows in use then) and
-    dense volumes of them by hash lookups (:meth:`volume`: what the table holds at the read). What
+    when this was taken: its cells a batch at a time (:meth:`batches`: the blocks held then) and
+    dense volumes of them by block lookups (:meth:`volume`: what the table holds at the read). What
     a mesh fills the cubes it leaves out from (:func:`~h3edge.mapping.mesh.left_out_surface`,
     D53-9), in scratch that does not grow with the base. Safe beside :meth:`ColorBase.fuse` on
-    another thread (the slot table is taken before the rows it indexes, and a base that grows
-    moves to new arrays: these stay whole); a cell fused meanwhile may read at its old or new value."""
+    another thread (the slot table and the arrays it indexes are taken together, and a base that
+    grows moves to new arrays: these stay whole); a cell fused meanwhile may read at its old or new
+    value."""
 
     def __init__(self, base: ColorBase):
-        self.slots = base.slots  # first: the rows it indexes are in the arrays taken after it
-        self.keys, self.cells = base.keys, base.cells
-        self.n = min(base.n, len(self.keys), len(self.cells))
+        self._table = base._table
+        self.bkeys, self.cells = self._table[1], self._table[2]
+        self.nblocks = min(base.nblocks, len(self.bkeys))
+        self.n = base.n
         self.cell = base.cfg.cell  # m, a cell's side
 
     def __len__(self) -> int:
         return self.n
 
     def batches(self, rows: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """The cells, ``rows`` at a time: integer coordinates (n, 3) int64 (centre ``(ijk + 1/2) *
-        cell`` m) and fused signed distance (n,) float32 m, NaN where a cell holds none."""
+        """The cells held, about ``rows`` at a time: integer coordinates (n, 3) int64 (centre ``(ijk +
+        1/2) * cell`` m) and fused signed distance (n,) float32 m (NaN where a cell holds none)."""
         from h3edge.mapping.voxels import unpack
 
-        for s in range(0, self.n, rows):
-            part = self.cells[s:min(self.n, s + rows)]
-            dist = part[:, 4].copy()
-            dist[~(part[:, 3] > 0)] = np.nan
-            yield unpack(self.keys[s:s + len(part)]), dist
+        step = max(1, rows // 64)  # blocks a batch
+        for b in range(0, self.nblocks, step):
+            part = self.cells[64 * b:64 * min(self.nblocks, b + step)]
+            held = np.flatnonzero(part[:, 3] > 0)
+            if len(held):
+                yield unpack(_cell_keys(self.bkeys, held + 64 * b)), part[held, 4].copy()
 
     def volume(self, origin: np.ndarray, size: int) -> np.ndarray:
         """The fused signed distance (size, size, size) float32 m of the cells ``origin + (a, b, c)``
         (``origin`` (3,) int cell coordinates), NaN where no cell holds one."""
         out = np.empty((size,) * 3, np.float32)
         o = np.asarray(origin, np.int64).reshape(3)
-        distance_volume(self.slots, self.keys, self.cells, int(o[0]), int(o[1]), int(o[2]), out)
+        distance_volume(*self._table, int(o[0]), int(o[1]), int(o[2]), out)
         return out
 
 
