@@ -185,7 +185,8 @@ def _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, reach, flat):
     return nx / norm, ny / norm, nz / norm
 
 
-@nb.njit(parallel=True, cache=True, nogil=True)
+# fast maths without assuming finite values: the NaN and infinity checks on depth stay
+@nb.njit(parallel=True, cache=True, nogil=True, fastmath={"contract", "arcp", "afn", "reassoc"})
 def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, cell, band, trunc, max_weight,
                normal_px):
     """Pass two of fusing a frame, as TSDF fusion does: every cell of the blocks ``touched`` whose
@@ -214,6 +215,22 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
         bx = ((bkey & _MASK) - _OFF) * 4
         by = (((bkey >> _BITS) & _MASK) - _OFF) * 4
         bz = (((bkey >> (2 * _BITS)) & _MASK) - _OFF) * 4
+        # the plane at the pixel the block's centre projects into: its cells' pixels on it share its normal
+        ox = (bx + 2.0) * cell - trans[0]
+        oy = (by + 2.0) * cell - trans[1]
+        oz = (bz + 2.0) * cell - trans[2]
+        zb = ox * rot[0, 2] + oy * rot[1, 2] + oz * rot[2, 2]
+        bnx = bny = bnz = 0.0
+        bpx = bpy = bpz = 0.0
+        if zb > 0.0:
+            ub = math.floor(fx * (ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]) / zb + cx)
+            vb = math.floor(fy * (ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]) / zb + cy)
+            if 0 <= ub < w and 0 <= vb < h:
+                db = depth[vb, ub]
+                if db > 0.0 and math.isfinite(db):
+                    xcb, ycb = (ub + 0.5 - cx) / fx, (vb + 0.5 - cy) / fy
+                    bnx, bny, bnz = _pixel_normal(depth, ub, vb, db, xcb, ycb, fx, fy, cx, cy, normal_px, cell)
+                    bpx, bpy, bpz = xcb * db, ycb * db, db
         for c in range(64):
             row = brow * 64 + c
             # the cell centre in this camera
@@ -225,8 +242,9 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
                 continue
             xf = ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]
             yf = ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]
-            u = math.floor(fx * xf / zc + cx)
-            v = math.floor(fy * yf / zc + cy)
+            iz = 1.0 / zc
+            u = math.floor(fx * xf * iz + cx)
+            v = math.floor(fy * yf * iz + cy)
             if u < 0 or v < 0 or u >= w or v >= h:
                 continue
             d = depth[v, u]
@@ -237,7 +255,11 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
                 continue
             pu, pv, cz = u, v, d
             xc, yc = (u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy
-            nx, ny, nz = _pixel_normal(depth, u, v, d, xc, yc, fx, fy, cx, cy, normal_px, cell)
+            if (bnx != 0.0 or bny != 0.0 or bnz != 0.0) and abs((xc * d - bpx) * bnx + (yc * d - bpy) * bny
+                                                                + (d - bpz) * bnz) <= 0.5 * cell:
+                nx, ny, nz = bnx, bny, bnz  # the pixel lies on the block's plane
+            else:
+                nx, ny, nz = _pixel_normal(depth, u, v, d, xc, yc, fx, fy, cx, cy, normal_px, cell)
             if nx != 0.0 or ny != 0.0 or nz != 0.0:
                 # the centre's foot on the pixel's plane, and the pixel it projects into
                 off = (xf - xc * d) * nx + (yf - yc * d) * ny + (zc - d) * nz
