@@ -55,8 +55,15 @@ import numpy as np
 import torch
 
 from h3edge.geometry.camera import Intrinsics
-from h3edge.mapping._color_base_kernel import (distance_volume, fuse_cells, load_cells, reach_blocks,
-                                              rebuild_block_slots, sample_cells, sample_distance)
+from h3edge.mapping._color_base_kernel import (
+    distance_volume,
+    fuse_cells,
+    load_cells,
+    reach_blocks,
+    rebuild_block_slots,
+    sample_cells,
+    sample_distance,
+)
 
 # block slots per block, at least: the slot table at most a quarter full. Most reads miss (a render's
 # search samples in front of the surface), and a miss walks the run of occupied slots from its home
@@ -143,7 +150,7 @@ class ColorBase:
         bslots = rebuild_block_slots(bkeys, nb_, capacity)
         # what readers on other threads take, in one assignment: a slot table and the arrays it indexes
         self._table = (bslots, bkeys, cells)
-        self.bslots, self.bkeys, self.cells, self.stamp = bslots, bkeys, cells, stamp  # a row: R, G, B, weight, distance
+        self.bslots, self.bkeys, self.cells, self.stamp = bslots, bkeys, cells, stamp  # row: R, G, B, weight, distance
 
     def __len__(self) -> int:
         return self.n

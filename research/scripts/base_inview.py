@@ -22,8 +22,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from base_foot_point import _read
+
 from benchmarks import anytime
 from benchmarks.mapping import open_dataset
 from h3edge.config import load_profile
