@@ -66,7 +66,9 @@ def _tsdf_voxels(tsdf: TsdfFusion) -> ColorBase:
     return base
 
 
-def run(name: str, cache: Path) -> list[dict]:
+def reference(name: str, cache: Path) -> tuple[list, list, list, list, TsdfFusion]:
+    """A dataset's frames, 8 held-out views, the frames' cleaned depths, the TSDF mesh's renders of
+    the views (colour, depth) and the TSDF itself (1 cm, every frame fused)."""
     seq = open_dataset({"sim": "default"}.get(name, name), cache)
     frames = [seq[i] for i in range(len(seq))]
     held = getattr(seq, "heldout", None)
@@ -77,7 +79,11 @@ def run(name: str, cache: Path) -> list[dict]:
     for f, d in zip(frames, depths):
         tsdf.integrate(f.color, d, f.pose)
     mesh = MeshRenderer(tsdf.mesh())
-    renders = [mesh.render(f.intrinsics, f.pose) for f in views]
+    return frames, views, depths, [mesh.render(f.intrinsics, f.pose) for f in views], tsdf
+
+
+def run(name: str, cache: Path) -> list[dict]:
+    frames, views, depths, renders, tsdf = reference(name, cache)
     rows = [{"dataset": name, "colours": "TSDF mesh", "shift_cell": 0.0,
              "psnr_db": float(np.mean([psnr(c, f.color) for (c, _), f in zip(renders, views)])),
              "ssim": float(np.mean([ssim(c, f.color) for (c, _), f in zip(renders, views)]))}]
@@ -101,6 +107,14 @@ def run(name: str, cache: Path) -> list[dict]:
     return rows
 
 
+def write_record(lines: list[str], rows: list[dict], out: Path) -> None:
+    """Print the table ``lines`` and write it to OUT.md, the ``rows`` to OUT.json."""
+    table = "\n".join(lines)
+    print(table)
+    out.with_suffix(".md").write_text(table + "\n")
+    out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+", default=["loft", "real"])
@@ -114,10 +128,7 @@ def main() -> None:
         ms = f"{r['fuse_ms_median']:.1f}" if "fuse_ms_median" in r else "—"
         lines.append(f"| {r['dataset']} | {r['colours']} | {r['shift_cell']:g} | {r['psnr_db']:.2f} | "
                      f"{r['ssim']:.4f} | {ms} |")
-    table = "\n".join(lines)
-    print(table)
-    args.out.with_suffix(".md").write_text(table + "\n")
-    args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+    write_record(lines, rows, args.out)
 
 
 if __name__ == "__main__":

@@ -17,34 +17,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import numpy as np
-from base_foot_point import _read
+from base_foot_point import _read, reference, write_record
 
-from benchmarks import anytime
-from benchmarks.mapping import open_dataset
 from h3edge.config import load_profile
-from h3edge.eval.evaluate import MeshRenderer
 from h3edge.eval.metrics import psnr, ssim
-from h3edge.eval.tsdf import TsdfFusion
 from h3edge.mapping.color_base import ColorBase
 
 
 def run(name: str, cache: Path, truncs: list[float]) -> list[dict]:
-    seq = open_dataset({"sim": "default"}.get(name, name), cache)
-    frames = [seq[i] for i in range(len(seq))]
-    held = getattr(seq, "heldout", None)
-    held = [held[i] for i in range(len(held))] if held is not None and len(held) else frames[::10]
-    views = anytime.pick_views(held, 8)
-    depths = [np.where((f.depth > 0.05) & (f.depth < 10), f.depth, 0).astype(np.float32) for f in frames]
-    tsdf = TsdfFusion(frames[0].intrinsics, block_count=20_000)
-    for f, d in zip(frames, depths):
-        tsdf.integrate(f.color, d, f.pose)
-    mesh = MeshRenderer(tsdf.mesh())
-    renders = [mesh.render(f.intrinsics, f.pose) for f in views]
+    frames, views, depths, renders, _ = reference(name, cache)
     rows = [{"dataset": name, "colours": "TSDF mesh",
              "psnr_db": float(np.mean([psnr(c, f.color) for (c, _), f in zip(renders, views)])),
              "ssim": float(np.mean([ssim(c, f.color) for (c, _), f in zip(renders, views)]))}]
@@ -78,10 +63,7 @@ def main() -> None:
         extra = (f"{r['fuse_ms_median']:.1f} | {r['cells']:,} | {r['blocks']:,} | {r['mb']:.0f}" if "cells" in r
                  else "— | — | — | —")
         lines.append(f"| {r['dataset']} | {r['colours']} | {r['psnr_db']:.2f} | {r['ssim']:.4f} | {extra} |")
-    table = "\n".join(lines)
-    print(table)
-    args.out.with_suffix(".md").write_text(table + "\n")
-    args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+    write_record(lines, rows, args.out)
 
 
 if __name__ == "__main__":
