@@ -198,7 +198,9 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
     where the surface point nearest its centre projects: its foot on the plane through the pixel's
     point with the normal its neighbours ``normal_px`` pixels away span (:func:`_pixel_normal`; the
     centre itself where they do not: 0, an image border, a missing neighbour, or the three pixels of
-    a row or column more than a cell off one plane), and its signed distance in front of that
+    a row or column more than a cell off one plane; the plane at the pixel the block's centre
+    projects into serves every cell whose pixel lies within half a cell of it: 19.8 -> 10.8 ms a
+    loft frame on one thread, 0.07 dB), and its signed distance in front of that
     pixel's depth; where that pixel has no depth or lies across a depth edge (> 2 (band + 1) cells
     from d), the centre's own pixel. (A cell off the surface read at its own centre takes each
     view's colour from a different surface point, up to its distance from the surface times the

@@ -8,22 +8,24 @@ has seen it (TSDF colour at 1 cm: 24.4 dB on a photographic room, 20.9 at 2 cm, 
 the neural colour field learns only what the base cannot hold (view-consistent shading, sub-cell
 detail, unseen cells).
 
-Cells (``cell`` metres a side) exist only where depth put a surface: each frame's valid pixels
-(every ``stride``-th in both axes; more at depths where those would lie > 2 cells apart) reach
-the cells at their measured depth and ``band`` cells in front of and behind it along their ray
-(the volume the render weights live in), which takes a row for each it reaches first. Then, as
-TSDF fusion does, every cell held in the 4^3 blocks those pixels reached whose centre lies within
-``trunc`` of the depth of the pixel it projects into fuses that frame, once (D53-13: a cell is
-updated by every frame that sees it near its surface, not only by those whose sparse pixel samples
-fell into it; on the real set a surface cell's colour averaged a few noisy frames). It takes the
-colour where the surface point nearest its centre projects (its foot on the plane the pixel's
-neighbours ``normal_px`` away span, D53-12; the centre's own projection, as TSDF fusion takes it,
-blurs the base by up to the centre's distance from the surface times the tangent of each view's
-incidence). The cells live in an open-addressed hash table, and each 4^3 block's cells are listed
-in a block table (:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` cells (new cells
-past it are refused and counted). Colour is read with trilinear weights between cell centres,
-renormalised over the cells that hold one (or, in a gap between fused pixels, the mean of the known
-cells around).
+Cells (``cell`` metres a side) live in 4^3 blocks, as a TSDF's voxel block grid: an open-addressed
+hash table of the blocks and each block's 64 cells in consecutive rows
+(:mod:`h3edge.mapping._color_base_kernel`), at most ``max_cells`` / 24 blocks (the points of frames
+that would reach further blocks are refused and counted). A frame is fused in two passes. First its
+valid pixels (every ``stride``-th in both axes; more at depths where those would lie > 2 cells
+apart) reach the points at their measured depth and ``band`` cells in front of and behind it along
+their ray, and the blocks those fall in (made where new). Then, as TSDF fusion does, every cell of
+those blocks whose centre projects into a pixel with depth fuses that pixel once: a cell held
+already where its centre lies within ``trunc`` of that depth, in front or behind (D53-13: each
+frame that sees a cell near its surface updates it, not only those whose sparse pixel samples
+fell into it; on the real set a surface cell's colour averaged a few noisy frames), and a new one
+where it lies within the ``band`` + 1/2 cells the pixels reach (cells exist only where depth put a
+surface, in the volume the render weights live in). A cell takes the colour where the surface point
+nearest its centre projects (its foot on the plane the pixel's neighbours ``normal_px`` away span,
+D53-12; the centre's own projection, as TSDF fusion takes it, blurs the base by up to the centre's
+distance from the surface times the tangent of each view's incidence). Colour is read with
+trilinear weights between cell centres, renormalised over the cells that hold one (or, in a gap
+between fused pixels, the mean of the known cells around).
 
 Each cell also fuses its centre's signed distance in front of that pixel's depth (along the fusing
 camera's z axis), a TSDF whose band is the colour's: :meth:`ColorBase.sample_distance` reads it,
@@ -37,13 +39,13 @@ sigmoid(logit(b) + z - z0) with z the colour MLP's logit and z0 its logit at zer
 base's, relative to its output where it has learned nothing: a cell the texture grids have not
 learned renders the base unchanged; elsewhere the MLP's colour is used as it is.
 
-Cost: 66 bytes a cell at most (a key, one RGB + weight + distance row, the slot table at most a quarter full, its
-block's row, and a share of the block table: 288 bytes a block, planned at 16 cells a block; the real set fills 32).
-A 640x480 frame at stride 3 with band 1 reaches ~100k cells and its ~6,000 blocks hold ~200k; on the real set
-on this 2-core machine the reaching pass takes 6.6 ms and the fusing pass 9.0 ms (15.5 on one thread; the pass
-before D53-13, which fused only the cells reached, took 10.5 ms in all). The passes are bound by memory
-latency, so the layout keeps a cell's lookup to few cache lines: a probe starts where its 4^3 block's cells sit
-side by side in the slot table, and a cell's colour, weight and distance share a row.
+Cost: a block is 1,312 bytes (64 rows of RGB + weight + distance, its key, touch stamp and slots at most a
+quarter full); a frame's band fills 27-32 cells of a block (loft, real: 41 MB for the real set's 1.0 M cells), and
+the memory plan counts 24 (54 bytes a cell). On the real set on this 2-core machine, fusing a 640x480 frame at
+stride 3 with band 1 takes 2.9 ms to reach ~6,000 blocks and 8.1 ms to fuse their cells (11 ms; 10.5 ms before
+D53-13, which fused only the cells the pixels reached, through a hash table of cells). A cell's lookup is one
+probe of the block table (small: it stays in cache) and its row sits beside its block's other cells; the plane
+a cell's colour is taken on is computed once a block and reused for every cell whose pixel lies on it.
 """
 
 from __future__ import annotations
