@@ -368,3 +368,28 @@ def rebuild_block_slots(bkeys, nblocks, capacity):
         _, s = _find_block(bslots, bkeys, bkeys[row], mask)
         bslots[s] = row
     return bslots
+
+
+@nb.njit(cache=True, nogil=True)
+def held_cells(bkeys, cells, nblocks):
+    """The cells held (weight > 0) in blocks 0..nblocks-1: their packed cell keys (N,) int64 and rows
+    (N, 5) float32 (R, G, B, weight, distance), block by block."""
+    n = 0
+    for row in range(64 * nblocks):
+        if cells[row, 3] > 0.0:
+            n += 1
+    keys = np.empty(n, np.int64)
+    rows = np.empty((n, 5), np.float32)
+    i = 0
+    for b in range(nblocks):
+        bkey = bkeys[b]
+        bx = ((bkey & _MASK) - _OFF) * 4
+        by = (((bkey >> _BITS) & _MASK) - _OFF) * 4
+        bz = (((bkey >> (2 * _BITS)) & _MASK) - _OFF) * 4
+        for c in range(64):
+            row = b * 64 + c
+            if cells[row, 3] > 0.0:
+                keys[i] = _key(bx + (c & 3), by + ((c >> 2) & 3), bz + (c >> 4))
+                rows[i, :] = cells[row, :]
+                i += 1
+    return keys, rows

@@ -60,6 +60,7 @@ from h3edge.geometry.camera import Intrinsics
 from h3edge.mapping._color_base_kernel import (
     distance_volume,
     fuse_cells,
+    held_cells,
     load_cells,
     reach_blocks,
     rebuild_block_slots,
@@ -213,18 +214,12 @@ class ColorBase:
         (:class:`FusedDistances`: the base's own table, no copy of its cells)."""
         return FusedDistances(self)
 
-    def _held(self) -> tuple[np.ndarray, np.ndarray]:
-        """The rows of the cells held and their packed cell keys."""
-        rows = np.flatnonzero(self.cells[:64 * self.nblocks, 3] > 0)
-        return rows, _cell_keys(self.bkeys, rows)
-
     def state_dict(self) -> dict[str, np.ndarray]:
         """The cells held as host arrays (keys int64 (N,) (packed cell coordinates,
         :func:`h3edge.mapping.voxels.pack`), rgb float32 (N, 3) in [0, 1], weight float32 (N,), signed
         distance float32 (N,) m) and the refused count; what a checkpoint holds of the base."""
-        rows, keys = self._held()
-        part = self.cells[rows]
-        return {"keys": keys, "rgb": part[:, :3].copy(), "weight": part[:, 3].copy(), "distance": part[:, 4].copy(),
+        keys, rows = held_cells(self.bkeys, self.cells, self.nblocks)
+        return {"keys": keys, "rgb": rows[:, :3].copy(), "weight": rows[:, 3].copy(), "distance": rows[:, 4].copy(),
                 "refused": np.asarray(self.refused, np.int64)}
 
     def load_state_dict(self, arrays: dict[str, np.ndarray]) -> None:
