@@ -209,7 +209,8 @@ def replay_h3edge(frames: list, settings, hz: float, queue: int, marks: list[Che
                "integration_ms_median": tm.get(key, {}).get("median_ms"),
                "integration_ms_p95": tm.get(key, {}).get("p95_ms"),
                "integration_wait_ms_median": tm.get("integration_wait", {}).get("median_ms"),
-               "training_steps": dict(mapper.iterations), "components": tm, "renders_rows": render_rows}
+               "training_steps": dict(mapper.iterations), "residual_gain": mapper.stats()["residual_gain"],
+               "components": tm, "renders_rows": render_rows}
     return rows, summary, mapper
 
 
@@ -307,6 +308,8 @@ def format_result(r: dict) -> str:
                      f"integration median {s['integration_ms_median']:.1f} ms"
                      + (f" (p95 {s['integration_ms_p95']:.1f} ms, waiting for a step: median "
                         f"{s['integration_wait_ms_median'] or 0:.1f} ms); training steps {s['training_steps']}"
+                        + (f"; colour residual gain at the end {s['residual_gain']:g}"
+                           if s.get("residual_gain") is not None else "")
                         if "training_steps" in s else ""))
     return "\n".join(lines)
 

@@ -364,7 +364,9 @@ class Mapper:
     def stats(self) -> dict:
         """Counts and sizes: ``frames_mapped``, ``dropped`` (by reason), ``iterations`` (training
         steps by when they ran), ``voxels``, ``voxels_refused``, ``vertices``, ``keyframes`` (and
-        ``_pruned``, ``_evicted``), ``texture_classes``, ``device``, ``memory_bytes`` (by part).
+        ``_pruned``, ``_evicted``), ``texture_classes``, ``device``, ``memory_bytes`` (by part),
+        ``residual_gain`` (the gain renders apply to the colour residual over the colour base, None
+        without ``render.checked_residual``).
         Durations by stage: ``timings.summary()``. Read without the map's lock (counts of a moment)."""
         return self._engine.stats()
 

@@ -309,17 +309,21 @@ _EPS = 1.0 / 512  # the base's colour is kept inside (eps, 1 - eps) so that its 
 
 
 def compose(field_rgb: torch.Tensor, base_rgb: torch.Tensor, known: torch.Tensor,
-            neutral: torch.Tensor | None = None) -> torch.Tensor:
-    """sigmoid(logit(base) + logit(field) - logit(neutral)) where ``known``, ``field_rgb`` elsewhere;
-    (N, 3) in [0, 1]. ``neutral`` (1, 3) or (N, 3): the field colour that leaves the base unchanged
-    (default 0.5); the field passes the colour MLP's output at zero texture features, so that a
-    global tint the MLP learns early (real set, last frame: 0.43 / 0.45 / 0.43 after 33 steps) does
-    not darken every surface the texture grids have not learned yet (D53-8)."""
+            neutral: torch.Tensor | None = None, gain: float = 1.0) -> torch.Tensor:
+    """sigmoid(logit(base) + gain (logit(field) - logit(neutral))) where ``known``, ``field_rgb``
+    elsewhere; (N, 3) in [0, 1]. ``neutral`` (1, 3) or (N, 3): the field colour that leaves the base
+    unchanged (default 0.5); the field passes the colour MLP's output at zero texture features, so
+    that a global tint the MLP learns early (real set, last frame: 0.43 / 0.45 / 0.43 after 33 steps)
+    does not darken every surface the texture grids have not learned yet (D53-8). ``gain`` in [0, 1]:
+    how much of the field's residual over the base is applied (training: 1; renders: what fresh
+    frames confirm, :mod:`h3edge.mapping.residual_check`)."""
     b = base_rgb.clamp(_EPS, 1 - _EPS)
-    odds = field_rgb * b
-    rest = (1 - field_rgb) * (1 - b)
-    if neutral is not None:
-        n = neutral.clamp(_EPS, 1 - _EPS)
-        odds, rest = odds * (1 - n), rest * n
-    mixed = odds / (odds + rest)
+    n = (torch.full_like(b[:1], 0.5) if neutral is None else neutral).clamp(_EPS, 1 - _EPS)
+    if gain == 1.0:  # odds products: finite wherever the field saturates, and their gradients too
+        odds = field_rgb * b * (1 - n)
+        rest = (1 - field_rgb) * (1 - b) * n
+        mixed = odds / (odds + rest)
+    else:
+        f = field_rgb.clamp(_EPS * _EPS, 1 - _EPS * _EPS)
+        mixed = torch.sigmoid(torch.logit(b) + gain * (torch.logit(f) - torch.logit(n)))
     return torch.where(known[:, None], mixed, field_rgb)

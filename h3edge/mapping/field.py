@@ -101,6 +101,9 @@ class Field(nn.Module):
         # the fused colour base the MLP's colour is composed with (:mod:`h3edge.mapping.color_base`);
         # the mapper's, set by it; not a parameter (fused at integration, never trained)
         self.color_base: ColorBase | None = None
+        # the gain on the colour MLP's residual over the base that renders apply: what fresh frames
+        # confirmed (:mod:`h3edge.mapping.residual_check`; set by the mapper, 1 until they have)
+        self.residual_gain = 1.0
 
     def hash_grids(self) -> list[HashGrid]:
         return [self.geo_grid, self.texture.grid]
@@ -118,20 +121,33 @@ class Field(nn.Module):
         res = self.sdf_mlp(self.geo_grid(points[idx]))[:, 0]
         return prior.index_add(0, idx, res), inside
 
-    def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+    def color(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None,
+              residual: float | None = None) -> torch.Tensor:
         """RGB (N, 3) in [0, 1] at world points (N, 3) metres: the colour MLP on the texture
         features, composed with the fused colour base where it knows the colour
         (:func:`~h3edge.mapping.color_base.compose`, relative to the MLP's colour at zero features).
-        ``voxel_index``: each point's leaf voxel (-1 or None: unknown, no warps apply)."""
+        ``voxel_index``: each point's leaf voxel (-1 or None: unknown, no warps apply).
+        ``residual``: the gain on the MLP's residual over the base (training: 1.0; None: the
+        ``residual_gain`` fresh frames confirmed, :mod:`h3edge.mapping.residual_check`)."""
+        if self.color_base is None or len(self.color_base) == 0 or len(points) == 0:
+            return self.color_mlp(self._texture(points, voxel_index))
+        rgb, neutral = self.color_field(points, voxel_index)
+        base, known = self.color_base.sample(points)
+        gain = self.residual_gain if residual is None else residual
+        return compose(rgb, base.to(rgb.dtype), known, neutral.to(rgb.dtype), gain)
+
+    def color_field(self, points: torch.Tensor, voxel_index: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The colour MLP's own output at world points (N, 3) metres, (N, 3) in [0, 1], and at zero
+        texture features (1, 3): what an unlearned texture cell reads (the neutral colour of
+        :func:`~h3edge.mapping.color_base.compose`)."""
+        features = self._texture(points, voxel_index)
+        return self.color_mlp(features), self.color_mlp(features.new_zeros((1, features.shape[1])))
+
+    def _texture(self, points: torch.Tensor, voxel_index: torch.Tensor | None) -> torch.Tensor:
         if voxel_index is None:  # unknown voxels: no warps apply (identity features only)
             voxel_index = torch.full((len(points),), -1, dtype=torch.long, device=points.device)
-        features = self.texture(points, voxel_index)
-        rgb = self.color_mlp(features)
-        if self.color_base is None or len(self.color_base) == 0 or len(points) == 0:
-            return rgb
-        base, known = self.color_base.sample(points)
-        neutral = self.color_mlp(features.new_zeros((1, features.shape[1])))  # what an unlearned cell reads
-        return compose(rgb, base.to(rgb.dtype), known, neutral.to(rgb.dtype))
+        return self.texture(points, voxel_index)
 
     def sparse_step(self, lr: float) -> None:
         for g in self.hash_grids():

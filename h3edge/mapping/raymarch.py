@@ -95,6 +95,10 @@ class RenderConfig:
     base_trained_rays: float = float("inf")
     """training rays: the base's surface is read only in voxels where fewer training rays than this have ended; paper:
     no base (inf: every voxel); D53-5"""
+    checked_residual: bool = False
+    """renders apply to the colour field's residual over the colour base the gain that fresh frames confirm
+    (:mod:`h3edge.mapping.residual_check`: the mapper scores each third frame's pixels before fusing it; false:
+    the residual as trained); paper: no base (false); D53-14"""
 
 
 def _march_kernel():
@@ -280,11 +284,19 @@ def render_rays(neural_field, voxels, origin: np.ndarray, dirs: np.ndarray, cfg:
                 missed = _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, found, cfg, dev, depth, color,
                                      floor, base)
                 if len(missed):  # a window short of weight (mostly an exit's): the found point is the surface
-                    _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color)
+                    _render_at(neural_field, lookup, origin, dirs, t_hit, missed, cfg.fallback_step, dev, depth, color,
+                               residual_gain(cfg))
     return color, depth
 
 
-def _render_at(neural_field, lookup, origin, dirs, t_hit, rays, back: float, dev, depth, color) -> None:
+def residual_gain(cfg: RenderConfig) -> float | None:
+    """The ``residual`` a render passes to :meth:`Field.color`: None (the field's checked gain) where
+    ``cfg.checked_residual``, else 1 (the residual as trained)."""
+    return None if cfg.checked_residual else 1.0
+
+
+def _render_at(neural_field, lookup, origin, dirs, t_hit, rays, back: float, dev, depth, color,
+               residual: float | None = 1.0) -> None:
     """Render ``rays`` at ``t_hit`` itself: that depth, and the colour field there, read in the voxel
     of the point (or of the point ``back`` in front of it, for a surface just past the allocated
     voxels); rays with neither point in a voxel stay empty."""
@@ -295,7 +307,8 @@ def _render_at(neural_field, lookup, origin, dirs, t_hit, rays, back: float, dev
     ok = vox >= 0
     if not ok.any():
         return
-    col = neural_field.color(torch.from_numpy(pts[ok].astype(np.float32)).to(dev), torch.from_numpy(vox[ok]).to(dev))
+    col = neural_field.color(torch.from_numpy(pts[ok].astype(np.float32)).to(dev), torch.from_numpy(vox[ok]).to(dev),
+                             residual)
     depth[rays[ok]] = t_hit[rays[ok]]
     color[rays[ok]] = col.float().cpu().numpy()
 
@@ -432,7 +445,8 @@ def _fine_stage(neural_field, voxels, lookup, origin, dirs, t_hit, rays, cfg, de
             depth_r = torch.where(snap, t_base, depth_r)
             hit = hit | on_base
         surf = o + d[hit] * depth_r[hit, None]
-        col = neural_field.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev)) if len(surf) else surf
+        col = (neural_field.color(surf, torch.from_numpy(lookup(surf.cpu().numpy())[1]).to(dev), residual_gain(cfg))
+               if len(surf) else surf)
         hit_np = hit.cpu().numpy()
         depth[idx[hit_np]] = depth_r[hit].cpu().numpy()
         color[idx[hit_np]] = col.float().cpu().numpy()

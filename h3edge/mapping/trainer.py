@@ -149,7 +149,7 @@ def surface_color_loss(neural_field: Field, voxels: VoxelMap, rays: RayBatch,
         return None
     vox = located[0]
     keep = vox >= 0
-    pred = neural_field.color(rays.surface_points, vox).to(torch.float32)
+    pred = neural_field.color(rays.surface_points, vox, residual=1.0).to(torch.float32)
     err = torch.where(keep[:, None], (pred - rays.surface_color).abs(), 0.0)
     return err.sum() / (3 * keep.sum()).clamp(min=1)
 
@@ -380,8 +380,8 @@ class Trainer:
         band_vox = smp.vox.reshape(r, s)[:, b0:].reshape(-1)
         need = color_samples(ev.sdf[:, b0:], self.field.cfg.beta, ev.inside[:, b0:], self.cfg.color_weight_floor)
         band_in = torch.nonzero(need.reshape(-1)).squeeze(1)  # colour only where it weighs
-        col = torch.zeros(len(band_pts), 3, device=dev).index_copy(
-            0, band_in, self.field.color(band_pts[band_in], band_vox[band_in]).to(torch.float32)).reshape(r, s - b0, 3)
+        band_col = self.field.color(band_pts[band_in], band_vox[band_in], residual=1.0).to(torch.float32)
+        col = torch.zeros(len(band_pts), 3, device=dev).index_copy(0, band_in, band_col).reshape(r, s - b0, 3)
         out = composite(ev.sdf[:, b0:], smp.t[:, b0:], col, self.field.cfg.beta, ev.inside[:, b0:], color_mask=need)
         sdf_mask, carved = ev.inside, torch.zeros((), device=dev)
         if self.votes is not None:

@@ -23,7 +23,7 @@ from h3edge.mapping.field import Field
 from h3edge.mapping.free_space import FreeSpace
 from h3edge.mapping.mesh import FILL_BATCH, extract_mesh, left_out_surface, paint
 from h3edge.mapping.onnx_decoders import DecoderRuntime
-from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig, free_floor_fn
+from h3edge.mapping.raymarch import MapRenderer, PriorLookup, RenderConfig, free_floor_fn, residual_gain
 from h3edge.mapping.voxels import VoxelMap
 
 
@@ -93,7 +93,7 @@ class MapView:
     def color_np(self, pts: np.ndarray, lookup: PriorLookup | None = None) -> np.ndarray:
         vox = (lookup or PriorLookup(self.voxels))(pts)[1]
         p = torch.from_numpy(pts.astype(np.float32)).to(self.device)
-        return self.field.color(p, torch.from_numpy(vox).to(self.device)).cpu().numpy()
+        return self.field.color(p, torch.from_numpy(vox).to(self.device), residual_gain(self.render_cfg)).cpu().numpy()
 
     def renderer(self) -> MapRenderer:
         return MapRenderer(self.field, self.voxels, self.render_cfg, self.votes)
