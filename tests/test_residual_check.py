@@ -7,7 +7,15 @@ import torch
 
 from h3edge.geometry.camera import Intrinsics, backproject, look_at
 from h3edge.mapping.color_base import ColorBase, ColorBaseConfig, compose
-from h3edge.mapping.residual_check import GAINS, MIN_SAMPLES, PROBE_PIXELS, ResidualCheck, ResidualProbe, take_probe
+from h3edge.mapping.residual_check import (
+    GAINS,
+    MIN_SAMPLES,
+    PROBE_PIXELS,
+    RESERVOIR,
+    ResidualCheck,
+    ResidualProbe,
+    take_probe,
+)
 
 INTR = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 FRONT = look_at(np.zeros(3), np.array([0.0, 1.0, 0.0]))  # looking along +y at a wall 2 m away
@@ -43,36 +51,54 @@ def _probe(n: int, base: float, target: float) -> ResidualProbe:
     return ResidualProbe(pts, np.full((n, 3), target, np.float32), np.full((n, 3), base, np.float32))
 
 
+def _scored(check: ResidualCheck, field) -> float:
+    return check.score(field, torch.zeros(len(check.points()), dtype=torch.long))
+
+
 @pytest.mark.parametrize("target, expected", [(0.4, 0.0), (0.8, 1.0), (0.6, None)])
-def test_the_gain_is_the_one_whose_composition_fresh_pixels_confirm(target, expected):
-    """The field's residual brightens a grey base 0.4 to 0.8: fresh pixels at 0.4 confirm none of it,
-    at 0.8 all of it, at 0.6 part of it; the gain stays 1 until enough pixels have been scored."""
+def test_the_gain_is_the_one_whose_composition_the_kept_pixels_confirm(target, expected):
+    """The field's residual brightens a grey base 0.4 to 0.8: kept pixels at 0.4 confirm none of it,
+    at 0.8 all of it, at 0.6 part of it; the gain stays 1 until enough pixels are kept."""
     check, field = ResidualCheck(), _ConstantField(0.8)
-    vox = torch.zeros(PROBE_PIXELS, dtype=torch.long)
-    check.score(field, _probe(PROBE_PIXELS, 0.4, target), vox)
-    assert check.samples < MIN_SAMPLES and check.gain == 1.0
+    check.add(_probe(PROBE_PIXELS, 0.4, target))
+    assert len(check.points()) < MIN_SAMPLES and _scored(check, field) == 1.0
     for _ in range(3):
-        check.score(field, _probe(PROBE_PIXELS, 0.4, target), vox)
+        check.add(_probe(PROBE_PIXELS, 0.4, target))
     if expected is None:  # the gain whose composition lies nearest 0.6 in colour
         colours = [float(compose(torch.tensor([[0.8]]), torch.tensor([[0.4]]), torch.tensor([True]),
                                  torch.tensor([[0.5]]), g)) for g in GAINS]
         expected = GAINS[int(np.argmin(np.abs(np.array(colours) - target)))]
         assert 0.0 < expected < 1.0
-    assert check.gain == expected and check.probes == 4
+    assert _scored(check, field) == expected and check.gain == expected
+    # the MLP as it stands is scored: once it reads the pixels' colour, all of its residual counts
+    assert _scored(check, _ConstantField(target if target > 0.4 else 0.4)) == (1.0 if target > 0.4 else 0.0)
+
+
+def test_the_kept_probes_are_an_even_sample_of_every_probe_offered():
+    check = ResidualCheck(seed=3)
+    for i in range(10 * RESERVOIR):
+        check.add(_probe(4, 0.5, i))  # the target tells the probe apart
+    kept = np.array([p.target[0, 0] for p in check.probes])
+    assert len(kept) == RESERVOIR and check.seen == 10 * RESERVOIR
+    assert kept.min() < 2 * RESERVOIR and kept.max() > 8 * RESERVOIR  # from the whole run, not its end
+    assert 3 * RESERVOIR < np.median(kept) < 7 * RESERVOIR
 
 
 def test_points_outside_the_map_are_not_scored_and_the_state_round_trips():
     check, field = ResidualCheck(), _ConstantField(0.8)
-    check.score(field, _probe(100, 0.4, 0.4), torch.full((100,), -1, dtype=torch.long))
-    assert check.probes == 0 and check.samples == 0
     for _ in range(4):
-        check.score(field, _probe(PROBE_PIXELS, 0.4, 0.4), torch.zeros(PROBE_PIXELS, dtype=torch.long))
+        check.add(_probe(PROBE_PIXELS, 0.4, 0.4))
+    assert check.score(field, torch.full((4 * PROBE_PIXELS,), -1, dtype=torch.long)) == 1.0 and check.scored == 0
+    assert _scored(check, field) == 0.0
     again = ResidualCheck()
-    again.load_state_dict(check.state_dict())
-    assert again.gain == check.gain == 0.0 and np.array_equal(again.sse, check.sse)
-    bad = dict(check.state_dict(), gain=0.3)
+    again.load_state_dict(*check.state_dict())
+    assert again.gain == 0.0 and np.array_equal(again.points(), check.points()) and again.seen == 4
+    assert np.array_equal(again.state_dict()[1]["base"], check.state_dict()[1]["base"])
+    meta, arrays = check.state_dict()
     with pytest.raises(ValueError):
-        again.load_state_dict(bad)
+        again.load_state_dict(dict(meta, gain=0.3), arrays)
+    with pytest.raises(ValueError):
+        again.load_state_dict(meta, dict(arrays, target=arrays["target"][:-1]))
 
 
 def test_a_probe_reads_the_base_as_it_was_before_the_frame():
@@ -89,25 +115,34 @@ def test_a_probe_reads_the_base_as_it_was_before_the_frame():
     assert np.abs(probe.points[:, 1] - wall_pts[0, 1]).max() < 1e-5
 
 
-def test_a_map_scores_fresh_frames_and_renders_at_the_gain_it_keeps(tiny_scene):
-    """Mapped with training between frames, the map scores probes and keeps a gain of GAINS; a render
-    with ``render.checked_residual`` applies it, the residual as trained renders otherwise, and the
-    gain is saved with the map."""
+def test_a_map_scores_the_frames_no_step_fits_and_renders_at_the_gain_it_keeps(tiny_scene, monkeypatch):
+    """Mapped with training between frames, the map keeps probes of the frames that are not
+    keyframes, scores them and keeps a gain of GAINS; a render with ``render.checked_residual``
+    applies it, the residual as trained renders otherwise, and the check is saved with the map."""
     import dataclasses
 
     from h3edge.io.replica import ReplicaSequence
+    from h3edge.mapping import engine
     from h3edge.mapping.engine import MapEngine, MapperConfig, MapSettings
+    from h3edge.mapping.keyframes import KeyframeConfig
     from h3edge.mapping.raymarch import RenderConfig
     from h3edge.mapping.voxels import VoxelConfig
 
+    monkeypatch.setattr(engine, "PROBE_EVERY", 1)  # every frame leaves a probe (a short sequence)
     seq = ReplicaSequence(tiny_scene)
     st = MapSettings(mapper=MapperConfig(device="cpu", train_between_frames=True), voxels=VoxelConfig(min_points=3),
+                     keyframes=KeyframeConfig(insert_iou=0.0, max_interval=4),  # a keyframe every 4th frame
                      color_base=ColorBaseConfig(cell=0.02), render=RenderConfig(checked_residual=True))
     m = MapEngine(st)
+    keyframes = 0
     for i in range(15):
-        assert m.integrate(seq[i]).mapped
+        result = m.integrate(seq[i])
+        assert result.mapped
+        keyframes += result.keyframe
         m.train_between_frames()
-    assert m.residual_check.probes >= 4 and m.field.residual_gain == m.residual_check.gain in GAINS
+    check = m.residual_check
+    assert check.seen == len(check.probes) == 15 - keyframes  # the first frame's, a keyframe's, none
+    assert check.scored >= 1 and m.field.residual_gain == check.gain in GAINS
     f = seq.heldout[0]
     view = m.view().frozen()
     view.field.residual_gain = 0.0  # the frozen view's own copy of the field
@@ -121,4 +156,5 @@ def test_a_map_scores_fresh_frames_and_renders_at_the_gain_it_keeps(tiny_scene):
     assert np.median(diff) < 0.01
     meta, arrays = m.state_dict()
     r = MapEngine.from_state_dict(st, meta, arrays)
-    assert r.field.residual_gain == m.field.residual_gain and r.residual_check.probes == m.residual_check.probes
+    assert r.field.residual_gain == m.field.residual_gain and r.residual_check.seen == check.seen
+    assert np.array_equal(r.residual_check.points(), check.points())

@@ -56,7 +56,7 @@ from h3edge.mapping.keyframes import (
 )
 from h3edge.mapping.losses import LossWeights
 from h3edge.mapping.raymarch import MapRenderer, RenderConfig, floor_window_weight
-from h3edge.mapping.residual_check import PROBE_EVERY, ResidualCheck, ResidualProbe, take_probe
+from h3edge.mapping.residual_check import PROBE_EVERY, RESCORE_STEPS, ResidualCheck, ResidualProbe, take_probe
 from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.threads import size_pools
@@ -235,10 +235,9 @@ class MapEngine:
         self.cell_votes = CellVotes(settings.votes, settings.voxels.voxel_size, settings.train.sdf_behind,
                                     settings.voxels.max_voxels)
         self.color_base = ColorBase(settings.color_base) if settings.color_base.enabled else None
-        # the gain renders apply to the colour residual over the base, scored on fresh frames (D53-14)
-        self.residual_check = (ResidualCheck() if self.color_base is not None and settings.render.checked_residual
-                               else None)
-        self._probe: ResidualProbe | None = None  # the newest fresh frame's probe, for the training thread
+        # the gain renders apply to the colour residual over the base, scored on frames no step fits (D53-14)
+        self.residual_check = (ResidualCheck(self.cfg.seed)
+                               if self.color_base is not None and settings.render.checked_residual else None)
         # keys of the voxels allocated or observed since the last take_changed_keys() (live mesh updates)
         self._changed: list[np.ndarray] = []
         self.timings = Timings()
@@ -404,6 +403,7 @@ class MapEngine:
         probe = (self.frames_mapped if self.residual_check is not None and self.frames_mapped % PROBE_EVERY == 0
                  else None)
         beside = self._beside(current, frame.intrinsics, probe) if len(self.voxels) else None
+        taken = None
         try:
             with self.timings.time("priors"):
                 set_before = self.voxels.prior_set.copy()
@@ -413,14 +413,17 @@ class MapEngine:
                 return self._drop(frame, "no_voxels",
                                   f"no voxel has {self.settings.voxels.min_points} depth points yet")
             if beside is None:
-                self._fuse_unplaced(current, frame.intrinsics, probe)
+                taken = self._fuse_unplaced(current, frame.intrinsics, probe)
             if self.cell_votes.enabled:
                 with self.timings.time("cell_votes"):
                     self.cell_votes.mark(self.voxels, current.depth, frame.intrinsics, current.pose)
-            return self._decide(frame, current, pts, new, defer_texture)
+            result = self._decide(frame, current, pts, new, defer_texture)
         finally:
             if beside is not None:
-                beside.result()  # its exception, if any, is the frame's
+                taken = beside.result()  # its exception, if any, is the frame's
+        if taken is not None and not result.keyframe:  # a keyframe's pixels are trained on: no probe of it
+            self.residual_check.add(taken)
+        return result
 
     def _beside(self, current: ImageFrame, intr: Intrinsics, probe: int | None) -> concurrent.futures.Future:
         """:meth:`_fuse_unplaced` on the integration helper thread (made on first use)."""
@@ -429,19 +432,21 @@ class MapEngine:
                                                                  initializer=size_pools, initargs=(self.cfg.threads,))
         return self._helper.submit(self._fuse_unplaced, current, intr, probe)
 
-    def _fuse_unplaced(self, current: ImageFrame, intr: Intrinsics, probe: int | None) -> None:
-        """The parts of integration that do not read the voxels: free space, the colour base (and,
-        unless ``probe`` is None, the frame's residual probe before the base takes it, its pixels
-        shifted by that number)."""
+    def _fuse_unplaced(self, current: ImageFrame, intr: Intrinsics, probe: int | None) -> ResidualProbe | None:
+        """The parts of integration that do not read the voxels: free space, the colour base; and,
+        unless ``probe`` is None, the frame's residual probe, taken before the base fuses the frame
+        (its pixels shifted by that number), returned."""
+        taken = None
         with self.timings.time("free_space"):
             self.free_space.mark(current.depth, intr, current.pose)
         if self.color_base is not None:
             with self.timings.time("color_base"):
                 if probe is not None:
-                    self._probe = take_probe(self.color_base, current.color, current.depth, current.pix, intr,
-                                             current.pose, probe)
+                    taken = take_probe(self.color_base, current.color, current.depth, current.pix, intr,
+                                       current.pose, probe)
                 self.color_base.fuse(current.color, current.depth if current.base_depth is None else current.base_depth,
                                      intr, current.pose)
+        return taken
 
     def _decide(self, frame: Frame, current: ImageFrame, pts: np.ndarray, new: np.ndarray,
                 defer_texture: bool) -> FrameResult:
@@ -471,7 +476,7 @@ class MapEngine:
             return result
         with self.exclusive():
             current, self._untrained = self._untrained, None
-            self._score_probe(self._located_probe())
+            self._score_probes(self._located_probes())
             with self.timings.time("training"):  # the keyframe picks included
                 picks = [self.keyframes.select() for _ in range(self.cfg.iterations)]
                 for kfs in picks:
@@ -600,25 +605,26 @@ class MapEngine:
             if not frames:
                 return None
             rays = self._sample_rays(frames)
-            probe = self._located_probe()
-        self._score_probe(probe)  # before the step: its pixels are still unseen by training
+            located = self._located_probes()
+        self._score_probes(located)
         losses = self._step(rays, "between_frames", self._training_turn)
         self.timings.add("idle_training", time.perf_counter() - t0)
         return losses
 
-    def _located_probe(self) -> tuple[ResidualProbe, torch.Tensor] | None:
-        """The newest frame's residual probe, taken (under the map lock), and its points' voxels."""
-        probe, self._probe = self._probe, None
-        if probe is None:
+    def _located_probes(self) -> torch.Tensor | None:
+        """Every ``RESCORE_STEPS`` training steps (under the map lock): the voxels of the residual
+        check's kept points, for :meth:`_score_probes`; None when no scoring is due."""
+        check = self.residual_check
+        if check is None or not check.probes or sum(self.iterations.values()) % RESCORE_STEPS:
             return None
-        return probe, self.voxels.locate_points(torch.from_numpy(probe.points).to(self.device))[0]
+        return self.voxels.locate_points(torch.from_numpy(check.points()).to(self.device))[0]
 
-    def _score_probe(self, located: tuple[ResidualProbe, torch.Tensor] | None) -> None:
-        """Score a :meth:`_located_probe` and hand renders the gain the check keeps (on the thread
-        that trains: the colour MLP is read between its steps)."""
-        if located is not None:
+    def _score_probes(self, voxel_index: torch.Tensor | None) -> None:
+        """Score the residual check's kept probes at :meth:`_located_probes`' voxels and hand renders
+        the gain it keeps (on the thread that trains, between its steps: it reads the colour MLP)."""
+        if voxel_index is not None:
             with self.timings.time("residual_check"):
-                self.field.residual_gain = self.residual_check.score(self.field, *located)
+                self.field.residual_gain = self.residual_check.score(self.field, voxel_index)
 
     def _step(self, rays: RayBatch, when: str, commit=contextlib.nullcontext) -> dict:
         losses = self.trainer.step(rays, commit)
@@ -749,7 +755,8 @@ class MapEngine:
         if self.color_base is not None:
             arrays.update(_prefixed("color_base", self.color_base.state_dict()))
         if self.residual_check is not None:
-            meta["residual_check"] = self.residual_check.state_dict()
+            meta["residual_check"], check_arrays = self.residual_check.state_dict()
+            arrays.update(_prefixed("residual_check", check_arrays))
         return meta, arrays
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
@@ -798,7 +805,7 @@ class MapEngine:
         if self.color_base is not None:  # a checkpoint from before the base (or without it) starts it empty
             self.color_base.load_state_dict(_unprefixed("color_base", arrays))
         if self.residual_check is not None and "residual_check" in meta:  # saved with the check on
-            self.residual_check.load_state_dict(meta["residual_check"])
+            self.residual_check.load_state_dict(meta["residual_check"], _unprefixed("residual_check", arrays))
             self.field.residual_gain = self.residual_check.gain
         self.frames_mapped = int(meta["frames_mapped"])
         self.dropped = dict(meta["dropped"])

@@ -1,25 +1,29 @@
-"""How much of the colour field's trained residual over the colour base the frames it has not seen
-confirm: the gain renders apply to it.
+"""How much of the colour field's trained residual over the colour base the views training does not
+fit confirm: the gain renders apply to it.
 
 Where the colour base (:mod:`h3edge.mapping.color_base`) knows a colour b, the field's colour is
 sigmoid(logit(b) + g (z - z0)) (:func:`~h3edge.mapping.color_base.compose`): z - z0 the colour
 MLP's residual, trained with g = 1 on the keyframes' pixels. Whether that residual carries to views
-no step used depends on the sequence: on the synthetic scenes it adds the detail a 1 cm cell cannot
+no step fits depends on the sequence: on the synthetic scenes it adds the detail a 1 cm cell cannot
 hold (30 s still: +0.6 dB over the base alone); on the real Kinect set the keyframes disagree
 (auto-exposure, registration) and the residual fits their disagreement, so held-out views render
 worse with it than with the base alone (D53-8: 17.14 / 0.588 against 17.26 / 0.599).
 
-Every frame that arrives is such a view. Before the colour base fuses it, every
-:data:`PROBE_EVERY`-th frame leaves a probe: :data:`PROBE_PIXELS` of its valid pixels, their
-measured surface points and the base's colour there without this frame (:func:`take_probe`). The
-training thread (it owns the colour MLP) scores the composition at each gain of :data:`GAINS`
-against the pixels' colours where the base knows one (:meth:`ResidualCheck.score`); the squared
-errors are summed with each probe's weight decaying by :data:`FORGET` per probe (the residual
-changes as training goes on), and the gain with the least sum is the one renders apply, once
-:data:`MIN_SAMPLES` pixels have been scored (1 until then: the residual as trained).
+The frames that arrive and do not become keyframes are such views (a training step draws a few
+hundred rays from the newest frame once; nothing else trains on them). Before the colour base fuses
+it, every :data:`PROBE_EVERY`-th frame leaves a probe (:func:`take_probe`): :data:`PROBE_PIXELS` of
+its valid pixels, their measured surface points and the base's colour there without this frame; a
+frame that becomes a keyframe gives its probe up. :class:`ResidualCheck` keeps :data:`RESERVOIR`
+probes, an even sample of every probe so far (reservoir sampling: the views of the whole sequence,
+not its last second), and every :data:`RESCORE_STEPS` training steps the training thread (it owns
+the colour MLP) scores the composition at each gain of :data:`GAINS` against the kept pixels'
+colours with the MLP as it stands (:meth:`ResidualCheck.score`): the gain with the least squared
+error is the one renders apply, once :data:`MIN_SAMPLES` pixels are kept (1 until then: the
+residual as trained). Standing still, the scores follow the training, which goes on.
 
-Cost: a probe's base reads on the integration helper thread (2,048 points: well under a
-millisecond); the colour MLP on those points on the training thread, every third frame.
+Cost: a probe's base reads on the integration helper thread (1,024 points: well under a
+millisecond); the colour MLP on the kept points (32,768 at most) every eighth step on the training
+thread; 1.2 MB kept.
 """
 
 from __future__ import annotations
@@ -33,15 +37,16 @@ from h3edge.geometry.camera import Intrinsics, pixels_to_camera
 from h3edge.mapping.color_base import ColorBase, compose
 
 GAINS = (0.0, 0.25, 0.5, 0.75, 1.0)  # gains on the residual scored (1: as trained)
-PROBE_PIXELS = 2048  # pixels a probe scores
+PROBE_PIXELS = 1024  # pixels a probe keeps
 PROBE_EVERY = 3  # frames between probes
-FORGET = 0.9  # the weight a probe's errors keep per later probe (about the last 10 probes count)
-MIN_SAMPLES = 4096  # pixels scored (forgetting counted) before the gain may leave 1
+RESERVOIR = 32  # probes kept (an even sample of all so far)
+RESCORE_STEPS = 8  # training steps between scorings
+MIN_SAMPLES = 4096  # pixels kept before the gain may leave 1
 
 
 @dataclass
 class ResidualProbe:
-    """A frame's pixels no training step has used, at their measured surface points: world points
+    """A frame's pixels no training step fits, at their measured surface points: world points
     (N, 3) float32 metres, the pixels' colours (N, 3) float32 in [0, 1], and the colour base's colour
     there (N, 3) float32 before the frame was fused (only pixels where the base knew one)."""
 
@@ -53,7 +58,7 @@ class ResidualProbe:
 def take_probe(base: ColorBase, color: np.ndarray, depth: np.ndarray, pix: np.ndarray, intr: Intrinsics,
                c2w: np.ndarray, frame_index: int) -> ResidualProbe | None:
     """A probe of a frame about to be fused into ``base``: up to :data:`PROBE_PIXELS` of its valid
-    pixels ``pix`` (flat indices into the (H, W) images; an even spread, shifted frame to frame),
+    pixels ``pix`` (flat indices into the (H, W) images; an even spread, shifted by ``frame_index``),
     colour uint8 (H, W, 3), depth float32 (H, W) metres, ``c2w`` camera-to-world (OpenCV optical).
     None where the base knows none of them."""
     if len(pix) == 0 or len(base) == 0:
@@ -73,46 +78,75 @@ def take_probe(base: ColorBase, color: np.ndarray, depth: np.ndarray, pix: np.nd
 
 
 class ResidualCheck:
-    """The squared colour errors of fresh frames' probes at each gain of :data:`GAINS` (forgetting
-    older probes) and the gain with the least: :attr:`gain`."""
+    """The kept probes (reservoir sampling, seeded) and the gain of :data:`GAINS` whose composition
+    reads them best: :attr:`gain`."""
 
-    def __init__(self):
-        self.sse = np.zeros(len(GAINS))  # forgetting-weighted sums of squared errors, per gain
-        self.samples = 0.0  # forgetting-weighted pixels scored
-        self.probes = 0  # probes scored
+    def __init__(self, seed: int = 0):
+        self.probes: list[ResidualProbe] = []
+        self.seen = 0  # probes offered
+        self.scored = 0  # scorings
+        self.sse = np.zeros(len(GAINS))  # the last scoring's sums of squared errors, per gain
         self.gain = 1.0
+        self._rng = np.random.default_rng(seed)
+
+    def add(self, probe: ResidualProbe) -> None:
+        """Offer a probe: kept while fewer than :data:`RESERVOIR` are, then in place of a kept one
+        with probability :data:`RESERVOIR` / probes offered (an even sample of every probe)."""
+        self.seen += 1
+        if len(self.probes) < RESERVOIR:
+            self.probes.append(probe)
+            return
+        slot = int(self._rng.integers(0, self.seen))
+        if slot < RESERVOIR:
+            self.probes[slot] = probe
+
+    def points(self) -> np.ndarray:
+        """The kept probes' points (N, 3) float32 world metres, in order."""
+        return (np.concatenate([p.points for p in self.probes]) if self.probes else np.zeros((0, 3), np.float32))
 
     @torch.no_grad()
-    def score(self, field, probe: ResidualProbe, voxel_index: torch.Tensor) -> float:
-        """Score ``probe`` with the colour MLP of ``field`` (:meth:`Field.color_field`, at each
-        point's leaf voxel ``voxel_index`` (N,) int64, -1 outside the map; those points are left
-        out) and update :attr:`gain`; returns it. Runs on the field's device."""
+    def score(self, field, voxel_index: torch.Tensor) -> float:
+        """Score the kept probes with the colour MLP of ``field`` (:meth:`Field.color_field`) at
+        their points' leaf voxels ``voxel_index`` (N,) int64 (:meth:`points`' order; -1 outside the
+        map: left out) and update :attr:`gain` (kept as it is below :data:`MIN_SAMPLES` points);
+        returns it. Runs on the field's device."""
         keep = voxel_index >= 0
-        if not bool(keep.any()):
+        n = int(keep.sum())
+        if n < MIN_SAMPLES:
             return self.gain
         dev = voxel_index.device
-        pts = torch.from_numpy(probe.points).to(dev)[keep]
-        target = torch.from_numpy(probe.target).to(dev)[keep]
-        base = torch.from_numpy(probe.base).to(dev)[keep]
+        cat = lambda name: torch.from_numpy(np.concatenate([getattr(p, name) for p in self.probes])).to(dev)[keep]  # noqa: E731
+        pts, target, base = cat("points"), cat("target"), cat("base")
         rgb, neutral = field.color_field(pts, voxel_index[keep])
         rgb, neutral = rgb.to(torch.float32), neutral.to(torch.float32)
-        known = torch.ones(len(pts), dtype=torch.bool, device=dev)
+        known = torch.ones(n, dtype=torch.bool, device=dev)
         sse = torch.stack([((compose(rgb, base, known, neutral, g) - target) ** 2).sum() for g in GAINS])
-        self.sse = FORGET * self.sse + sse.cpu().numpy().astype(np.float64)
-        self.samples = FORGET * self.samples + len(pts)
-        self.probes += 1
-        if self.samples >= MIN_SAMPLES:
-            self.gain = float(GAINS[int(np.argmin(self.sse))])
+        self.sse = sse.cpu().numpy().astype(np.float64)
+        self.scored += 1
+        self.gain = float(GAINS[int(np.argmin(self.sse))])
         return self.gain
 
-    def state_dict(self) -> dict:
-        """JSON-able state (the sums, the count, the gain)."""
-        return {"sse": self.sse.tolist(), "samples": self.samples, "probes": self.probes, "gain": self.gain}
+    def state_dict(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """JSON-able ``meta`` (counts, the last scoring, the gain, the sampler's state) and the kept
+        probes as arrays (``points``, ``target``, ``base`` concatenated; ``sizes`` per probe)."""
+        meta = {"seen": self.seen, "scored": self.scored, "sse": self.sse.tolist(), "gain": self.gain,
+                "rng": self._rng.bit_generator.state}
+        arrays = {"points": self.points(), "sizes": np.array([len(p.points) for p in self.probes], np.int64)}
+        for name in ("target", "base"):
+            arrays[name] = (np.concatenate([getattr(p, name) for p in self.probes]) if self.probes
+                            else np.zeros((0, 3), np.float32))
+        return meta, arrays
 
-    def load_state_dict(self, state: dict) -> None:
-        """Take :meth:`state_dict`'s; ValueError where it does not fit :data:`GAINS` or its gain is not one of them."""
-        sse = np.asarray(state["sse"], np.float64)
-        gain = float(state["gain"])
-        if sse.shape != (len(GAINS),) or not np.isfinite(sse).all() or gain not in GAINS:
-            raise ValueError(f"residual check state does not fit the gains {GAINS}: {state}")
-        self.sse, self.samples, self.probes, self.gain = sse, float(state["samples"]), int(state["probes"]), gain
+    def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Take :meth:`state_dict`'s; ValueError where it does not fit (a gain not of :data:`GAINS`,
+        arrays of other lengths, more probes than :data:`RESERVOIR`)."""
+        sizes = np.asarray(arrays["sizes"], np.int64)
+        parts = [np.asarray(arrays[k], np.float32) for k in ("points", "target", "base")]
+        gain, sse = float(meta["gain"]), np.asarray(meta["sse"], np.float64)
+        if (gain not in GAINS or sse.shape != (len(GAINS),) or len(sizes) > RESERVOIR or (sizes < 0).any()
+                or any(p.shape != (int(sizes.sum()), 3) for p in parts)):
+            raise ValueError(f"residual check state does not fit {RESERVOIR} probes of the gains {GAINS}")
+        cuts = np.cumsum(sizes)[:-1]
+        self.probes = [ResidualProbe(*ps) for ps in zip(*(np.split(p, cuts) for p in parts))] if len(sizes) else []
+        self.seen, self.scored, self.sse, self.gain = int(meta["seen"]), int(meta["scored"]), sse, gain
+        self._rng.bit_generator.state = meta["rng"]
