@@ -857,6 +857,7 @@ class MapEngine:
                 "free_space": self.free_space.nbytes,
                 "cell_votes": self.cell_votes.nbytes,
                 "color_base": self.color_base.nbytes if self.color_base is not None else 0,
+                "residual_check": self.residual_check.nbytes if self.residual_check is not None else 0,
             },
         }
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from h3edge.mapping.color_base import ROW_BYTES
 from h3edge.mapping.engine import RAY_TABLES, MapSettings
+from h3edge.mapping.residual_check import KEPT_BYTES
 
 # Peak bytes per pixel of decoding and mapping one frame beyond the ray table (decoded images,
 # cleaned depth, back-projected points, texture-pattern images, keyframe payload), measured with
@@ -44,6 +45,8 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
     # the fused colour base at its cap: the map's (a query's map copy shares it) and the checkpoint's rows
     base = settings.color_base.nbytes()
     base = base + settings.color_base.max_cells * ROW_BYTES
+    # the residual check's kept probes, the map's and the checkpoint's (D53-14)
+    base += 2 * KEPT_BYTES if settings.color_base.enabled and settings.render.checked_residual else 0
     left = budget - tables - voxels - snapshot - working - checkpoint - frames - free - votes - base
     cap = max(8, left // max(1, keyframe_bytes))  # keyframes of the largest frame, at least 8
     return {"budget": budget, "hash_tables": tables, "voxels_at_cap": voxels, "query_snapshot": snapshot,

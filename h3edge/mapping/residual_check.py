@@ -42,6 +42,7 @@ PROBE_EVERY = 3  # frames between probes
 RESERVOIR = 32  # probes kept (an even sample of all so far)
 RESCORE_STEPS = 8  # training steps between scorings
 MIN_SAMPLES = 4096  # pixels kept before the gain may leave 1
+KEPT_BYTES = RESERVOIR * PROBE_PIXELS * 9 * 4  # the kept probes at most: point, colour, base colour (float32)
 
 
 @dataclass
@@ -99,6 +100,10 @@ class ResidualCheck:
         slot = int(self._rng.integers(0, self.seen))
         if slot < RESERVOIR:
             self.probes[slot] = probe
+
+    @property
+    def nbytes(self) -> int:
+        return sum(p.points.nbytes + p.target.nbytes + p.base.nbytes for p in self.probes)
 
     def points(self) -> np.ndarray:
         """The kept probes' points (N, 3) float32 world metres, in order."""
