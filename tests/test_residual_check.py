@@ -84,6 +84,20 @@ def test_the_kept_probes_are_an_even_sample_of_every_probe_offered():
     assert 3 * RESERVOIR < np.median(kept) < 7 * RESERVOIR
 
 
+def test_probes_replaced_while_a_scoring_runs_leave_it_to_the_probes_it_located():
+    """Integration may replace a kept probe between the training thread locating the kept points
+    (under the map lock) and scoring them (outside it): the scoring reads the probes it located."""
+    check, field = ResidualCheck(), _ConstantField(0.8)
+    for _ in range(RESERVOIR):
+        check.add(_probe(PROBE_PIXELS, 0.4, 0.4))
+    located = list(check.probes)
+    for _ in range(4 * RESERVOIR):
+        check.add(_probe(7, 0.4, 0.8))  # other sizes, other colours
+    assert len(check.points()) != len(located) * PROBE_PIXELS
+    vox = torch.zeros(len(located) * PROBE_PIXELS, dtype=torch.long)
+    assert check.score(field, vox, located) == 0.0  # the located probes' verdict
+
+
 def test_points_outside_the_map_are_not_scored_and_the_state_round_trips():
     check, field = ResidualCheck(), _ConstantField(0.8)
     for _ in range(4):

@@ -611,20 +611,23 @@ class MapEngine:
         self.timings.add("idle_training", time.perf_counter() - t0)
         return losses
 
-    def _located_probes(self) -> torch.Tensor | None:
-        """Every ``RESCORE_STEPS`` training steps (under the map lock): the voxels of the residual
-        check's kept points, for :meth:`_score_probes`; None when no scoring is due."""
+    def _located_probes(self) -> tuple[list[ResidualProbe], torch.Tensor] | None:
+        """Every ``RESCORE_STEPS`` training steps (under the map lock): the residual check's kept
+        probes as they are now (integration may replace one before they are scored) and their points'
+        voxels, for :meth:`_score_probes`; None when no scoring is due."""
         check = self.residual_check
         if check is None or not check.probes or sum(self.iterations.values()) % RESCORE_STEPS:
             return None
-        return self.voxels.locate_points(torch.from_numpy(check.points()).to(self.device))[0]
+        probes = list(check.probes)
+        points = np.concatenate([p.points for p in probes])
+        return probes, self.voxels.locate_points(torch.from_numpy(points).to(self.device))[0]
 
-    def _score_probes(self, voxel_index: torch.Tensor | None) -> None:
-        """Score the residual check's kept probes at :meth:`_located_probes`' voxels and hand renders
-        the gain it keeps (on the thread that trains, between its steps: it reads the colour MLP)."""
-        if voxel_index is not None:
+    def _score_probes(self, located: tuple[list[ResidualProbe], torch.Tensor] | None) -> None:
+        """Score :meth:`_located_probes`' probes and hand renders the gain the check keeps (on the
+        thread that trains, between its steps: it reads the colour MLP)."""
+        if located is not None:
             with self.timings.time("residual_check"):
-                self.field.residual_gain = self.residual_check.score(self.field, voxel_index)
+                self.field.residual_gain = self.residual_check.score(self.field, located[1], located[0])
 
     def _step(self, rays: RayBatch, when: str, commit=contextlib.nullcontext) -> dict:
         losses = self.trainer.step(rays, commit)

@@ -110,17 +110,18 @@ class ResidualCheck:
         return (np.concatenate([p.points for p in self.probes]) if self.probes else np.zeros((0, 3), np.float32))
 
     @torch.no_grad()
-    def score(self, field, voxel_index: torch.Tensor) -> float:
-        """Score the kept probes with the colour MLP of ``field`` (:meth:`Field.color_field`) at
-        their points' leaf voxels ``voxel_index`` (N,) int64 (:meth:`points`' order; -1 outside the
-        map: left out) and update :attr:`gain` (kept as it is below :data:`MIN_SAMPLES` points);
-        returns it. Runs on the field's device."""
+    def score(self, field, voxel_index: torch.Tensor, probes: list[ResidualProbe] | None = None) -> float:
+        """Score ``probes`` (default: the kept ones) with the colour MLP of ``field``
+        (:meth:`Field.color_field`) at their points' leaf voxels ``voxel_index`` (N,) int64 (the
+        probes' points in order; -1 outside the map: left out) and update :attr:`gain` (kept as it is
+        below :data:`MIN_SAMPLES` points); returns it. Runs on the field's device."""
+        probes = self.probes if probes is None else probes
         keep = voxel_index >= 0
         n = int(keep.sum())
         if n < MIN_SAMPLES:
             return self.gain
         dev = voxel_index.device
-        cat = lambda name: torch.from_numpy(np.concatenate([getattr(p, name) for p in self.probes])).to(dev)[keep]  # noqa: E731
+        cat = lambda name: torch.from_numpy(np.concatenate([getattr(p, name) for p in probes])).to(dev)[keep]  # noqa: E731
         pts, target, base = cat("points"), cat("target"), cat("base")
         rgb, neutral = field.color_field(pts, voxel_index[keep])
         rgb, neutral = rgb.to(torch.float32), neutral.to(torch.float32)
