@@ -32,7 +32,9 @@ LABELS = {"read": "data reading & preprocessing", "priors": "octree SDF priors",
           "frame": "whole frame", "ingest": "ingest (zenoh callback)", "queue_wait": "queue wait",
           "integration": "frame integration (no training)", "color_base": "colour base fusion",
           "integration_wait": "integration's wait for the map",
-          "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write"}
+          "association": "pose association", "frame_delay": "frame age when mapped", "checkpoint": "checkpoint write",
+          "free_space": "free space", "cell_votes": "cell votes",
+          "residual_check": "colour residual check (training thread)"}
 
 
 @dataclass
