@@ -96,9 +96,10 @@ class RenderConfig:
     """training rays: the base's surface is read only in voxels where fewer training rays than this have ended; paper:
     no base (inf: every voxel); D53-5"""
     checked_residual: bool = False
-    """renders apply to the colour field's residual over the colour base the gain that fresh frames confirm
-    (:mod:`h3edge.mapping.residual_check`: the mapper scores each third frame's pixels before fusing it; false:
-    the residual as trained); paper: no base (false); D53-14"""
+    """renders apply to the colour field's residual over the colour base the gain (0-1) that the frames no training
+    step fits confirm (:mod:`h3edge.mapping.residual_check`: pixels of every third frame that is not a keyframe, kept
+    before the base fuses it and scored every 8 steps; false: the residual as trained); paper: no base (false);
+    D53-14"""
 
 
 def _march_kernel():
