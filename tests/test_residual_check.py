@@ -113,6 +113,11 @@ def test_points_outside_the_map_are_not_scored_and_the_state_round_trips():
         again.load_state_dict(dict(meta, gain=0.3), arrays)
     with pytest.raises(ValueError):
         again.load_state_dict(meta, dict(arrays, target=arrays["target"][:-1]))
+    with pytest.raises(ValueError):  # malformed: refused as such, the check unchanged
+        again.load_state_dict(dict(meta, rng="not a state"), arrays)
+    with pytest.raises(ValueError):
+        again.load_state_dict({k: v for k, v in meta.items() if k != "seen"}, arrays)
+    assert again.gain == 0.0 and again.seen == 4
 
 
 def test_a_probe_reads_the_base_as_it_was_before_the_frame():

@@ -144,15 +144,21 @@ class ResidualCheck:
         return meta, arrays
 
     def load_state_dict(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
-        """Take :meth:`state_dict`'s; ValueError where it does not fit (a gain not of :data:`GAINS`,
-        arrays of other lengths, more probes than :data:`RESERVOIR`)."""
-        sizes = np.asarray(arrays["sizes"], np.int64)
-        parts = [np.asarray(arrays[k], np.float32) for k in ("points", "target", "base")]
-        gain, sse = float(meta["gain"]), np.asarray(meta["sse"], np.float64)
+        """Take :meth:`state_dict`'s; ValueError where it does not fit (missing or malformed entries,
+        a gain not of :data:`GAINS`, arrays of other lengths, more probes than :data:`RESERVOIR`);
+        nothing is changed then."""
+        try:
+            sizes = np.asarray(arrays["sizes"], np.int64).reshape(-1)
+            parts = [np.asarray(arrays[k], np.float32) for k in ("points", "target", "base")]
+            gain, sse = float(meta["gain"]), np.asarray(meta["sse"], np.float64)
+            seen, scored = int(meta["seen"]), int(meta["scored"])
+            rng = np.random.default_rng()
+            rng.bit_generator.state = meta["rng"]
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"residual check state is malformed: {e!r}") from e
         if (gain not in GAINS or sse.shape != (len(GAINS),) or len(sizes) > RESERVOIR or (sizes < 0).any()
-                or any(p.shape != (int(sizes.sum()), 3) for p in parts)):
+                or any(p.shape != (int(sizes.sum()), 3) or not np.isfinite(p).all() for p in parts)):
             raise ValueError(f"residual check state does not fit {RESERVOIR} probes of the gains {GAINS}")
         cuts = np.cumsum(sizes)[:-1]
         self.probes = [ResidualProbe(*ps) for ps in zip(*(np.split(p, cuts) for p in parts))] if len(sizes) else []
-        self.seen, self.scored, self.sse, self.gain = int(meta["seen"]), int(meta["scored"]), sse, gain
-        self._rng.bit_generator.state = meta["rng"]
+        self.seen, self.scored, self.sse, self.gain, self._rng = seen, scored, sse, gain, rng
