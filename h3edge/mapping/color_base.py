@@ -255,15 +255,6 @@ def keys_to_blocks(keys: np.ndarray) -> np.ndarray:
     return pack(unpack(keys) >> 2)
 
 
-def _cell_keys(bkeys: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Packed cell keys of block-table ``rows`` (N,) (row 64 b + x + 4 y + 16 z of block b)."""
-    from h3edge.mapping.voxels import pack, unpack
-
-    local = rows & 63
-    ijk = unpack(bkeys[rows >> 6]) * 4 + np.stack([local & 3, (local >> 2) & 3, local >> 4], 1)
-    return pack(ijk)
-
-
 class FusedDistances:
     """The fused signed distances of a :class:`ColorBase`, read in place from the arrays it held
     when this was taken: its cells a batch at a time (:meth:`batches`: the blocks held then) and
@@ -291,10 +282,10 @@ class FusedDistances:
 
         step = max(1, rows // 64)  # blocks a batch
         for b in range(0, self.nblocks, step):
-            part = self.cells[64 * b:64 * min(self.nblocks, b + step)]
-            held = np.flatnonzero(part[:, 3] > 0)
-            if len(held):
-                yield unpack(_cell_keys(self.bkeys, held + 64 * b)), part[held, 4].copy()
+            e = min(self.nblocks, b + step)
+            keys, held = held_cells(self.bkeys[b:e], self.cells[64 * b:64 * e], e - b)
+            if len(keys):
+                yield unpack(keys), held[:, 4].copy()
 
     def volume(self, origin: np.ndarray, size: int) -> np.ndarray:
         """The fused signed distance (size, size, size) float32 m of the cells ``origin + (a, b, c)``

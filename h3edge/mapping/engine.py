@@ -619,8 +619,7 @@ class MapEngine:
         if check is None or not check.probes or sum(self.iterations.values()) % RESCORE_STEPS:
             return None
         probes = list(check.probes)
-        points = np.concatenate([p.points for p in probes])
-        return probes, self.voxels.locate_points(torch.from_numpy(points).to(self.device))[0]
+        return probes, self.voxels.locate_points(torch.from_numpy(check.points(probes)).to(self.device))[0]
 
     def _score_probes(self, located: tuple[list[ResidualProbe], torch.Tensor] | None) -> None:
         """Score :meth:`_located_probes`' probes and hand renders the gain the check keeps (on the
@@ -846,7 +845,8 @@ class MapEngine:
             "keyframes_pruned": self.keyframes.pruned,
             "keyframes_evicted": self.keyframes.evicted,
             "device": str(self.device),
-            "residual_gain": self.field.residual_gain if self.residual_check is not None and self.field else None,
+            "residual_gain": (self.field.residual_gain if self.residual_check is not None and self.field is not None
+                              else None),
             "texture_classes": self.patterns.counts(len(self.voxels))
             if self.settings.texture.quasi_heterogeneous
             else {},

@@ -105,9 +105,10 @@ class ResidualCheck:
     def nbytes(self) -> int:
         return sum(p.points.nbytes + p.target.nbytes + p.base.nbytes for p in self.probes)
 
-    def points(self) -> np.ndarray:
-        """The kept probes' points (N, 3) float32 world metres, in order."""
-        return (np.concatenate([p.points for p in self.probes]) if self.probes else np.zeros((0, 3), np.float32))
+    def points(self, probes: list[ResidualProbe] | None = None) -> np.ndarray:
+        """The points of ``probes`` (default: the kept ones) (N, 3) float32 world metres, in order."""
+        probes = self.probes if probes is None else probes
+        return np.concatenate([p.points for p in probes]) if probes else np.zeros((0, 3), np.float32)
 
     @torch.no_grad()
     def score(self, field, voxel_index: torch.Tensor, probes: list[ResidualProbe] | None = None) -> float:
