@@ -103,6 +103,7 @@ class ResidualCheck:
 
     @property
     def nbytes(self) -> int:
+        """Host bytes of the kept probes (at most :data:`KEPT_BYTES`)."""
         return sum(p.points.nbytes + p.target.nbytes + p.base.nbytes for p in self.probes)
 
     def points(self, probes: list[ResidualProbe] | None = None) -> np.ndarray:
