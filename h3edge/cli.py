@@ -154,7 +154,8 @@ def _profile_with_overrides(args: argparse.Namespace):
 
 _ROS_FLAGS = {"base_to_camera": "base_to_camera", "ros_keys": "key_style", "color_topic": "color_topic",
               "depth_topic": "depth_topic", "camera_info_topic": "camera_info_topic", "pose_topic": "pose_topic",
-              "pose_type": "pose_type", "base_frame": "base_frame", "world_frame": "world_frame"}
+              "pose_type": "pose_type", "base_frame": "base_frame", "world_frame": "world_frame",
+              "depth_camera_info_topic": "depth_camera_info_topic", "depth_to_color": "depth_to_color"}
 
 
 def _ros_config(args: argparse.Namespace, base=None):
@@ -179,6 +180,11 @@ def _add_ros_args(p: argparse.ArgumentParser, keys: bool = False) -> None:
     g.add_argument("--color-topic")
     g.add_argument("--depth-topic", help="depth registered to the colour camera (16UC1 mm or 32FC1 m)")
     g.add_argument("--camera-info-topic")
+    g.add_argument("--depth-camera-info-topic", help="the depth camera's own camera info: where it differs from the "
+                   "colour camera's, depth is registered with --depth-to-color or refused")
+    g.add_argument("--depth-to-color", help="the depth camera's optical frame in the colour camera's optical frame, "
+                   "'x y z qx qy qz qw' (the driver's depth -> colour extrinsics) or 'identity': depth from its own "
+                   "camera is registered into the colour camera")
     g.add_argument("--pose-topic")
     g.add_argument("--pose-type", choices=["odometry", "pose", "tf"])
     g.add_argument("--base-frame", help="the frame the poses place (Odometry child frame, TF child)")

@@ -105,3 +105,40 @@ def test_a_field_of_view_under_a_degree_is_no_camera():
     for fx in (1e6, 1e9, 1e300):
         with pytest.raises(ValueError, match="field of view"):
             Intrinsics(640, 480, fx, fx, 320.0, 240.0)
+
+
+def test_depth_registered_into_another_camera_lands_where_the_points_project():
+    """A plane 2 m ahead seen by a coarser depth camera 5 cm to the left of the colour camera:
+    every colour pixel it covers reads 2 m, the covered columns and rows are where the depth
+    camera's view edges project, and nothing outside; a slanted plane reads its own depth at the
+    pixel centres within what one depth pixel's splat spans; a non-rigid transform is refused."""
+    from h3edge.geometry.registration import register_depth
+
+    color = Intrinsics(640, 480, 613.0, 613.0, 320.0, 240.0)
+    depth_cam = Intrinsics(424, 240, 390.0, 390.0, 212.0, 120.0)
+    t = np.eye(4)
+    t[0, 3] = 0.05  # the depth camera's origin in the colour camera
+    out = register_depth(np.full((240, 424), 2.0, np.float32), depth_cam, color, t)
+    assert out.shape == (480, 640) and np.all(np.isin(out, (0.0, 2.0)))
+    cols, rows = np.flatnonzero((out > 0).any(0)), np.flatnonzero((out > 0).any(1))
+    half_w, half_h = 212.0 / 390.0 * 2.0, 120.0 / 390.0 * 2.0  # m: the depth camera's half view at 2 m
+    assert abs(cols.min() - (613.0 * (0.05 - half_w) / 2.0 + 320.0)) <= 1 and cols.max() == 639
+    assert abs(rows.min() - (240.0 - 613.0 * half_h / 2.0)) <= 1
+    assert abs(rows.max() - (240.0 + 613.0 * half_h / 2.0)) <= 1
+    assert (out[rows.min() + 1:rows.max(), cols.min() + 1:] > 0).all()  # no gaps from the coarser camera
+    # a plane z = 2 + 0.5 x (camera frame of the depth camera)
+    u, v = np.meshgrid(np.arange(424) + 0.5, np.arange(240) + 0.5)
+    xn = (u - 212.0) / 390.0
+    z_d = (2.0 / (1.0 - 0.5 * xn)).astype(np.float32)
+    slanted = register_depth(z_d, depth_cam, color, t)
+    a, b = np.meshgrid(np.arange(640) + 0.5, np.arange(480) + 0.5)
+    # the plane in the colour camera: z = 2 + 0.5 (x - 0.05), x = (a - cx) / fx * z
+    z_c = (2.0 - 0.025) / (1.0 - 0.5 * (a - 320.0) / 613.0)
+    hit = slanted > 0
+    assert hit.mean() > 0.5
+    # a splat holds its pixel centre's depth over up to 2 colour pixels, ~2 mm of this plane's depth each
+    assert np.abs(slanted[hit] - z_c[hit]).max() < 0.006
+    with pytest.raises(ValueError, match="transform"):
+        register_depth(np.ones((240, 424), np.float32), depth_cam, color, np.diag([1.0, 1.0, 2.0, 1.0]))
+    with pytest.raises(ValueError, match="camera info"):
+        register_depth(np.ones((10, 10), np.float32), depth_cam, color, t)

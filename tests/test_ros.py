@@ -224,6 +224,33 @@ def test_depth_not_registered_to_colour_is_refused_never_mapped_misaligned():
     assert "depth_camera_info" not in RosConfig(base_to_camera="identity", depth_camera_info_topic="").keys()
 
 
+def test_depth_from_its_own_camera_is_registered_live_with_the_extrinsics():
+    """Issue [4/5] deliver 4, live: with ``depth_to_color`` set, depth of its own camera (another size
+    and focal length, 5 cm to the side) becomes a frame whose depth is in the colour camera: a wall
+    1.5 m ahead reads 1.5 m where the depth camera saw it and 0 where it did not."""
+    from h3edge.io.protocol import decode_frame
+
+    sink = Sink()
+    ing = RosIngest(RosConfig(base_to_camera=EXTRINSIC, depth_to_color="0.05 0 0 0 0 0 1"), sink.frames.append,
+                    lambda t, p: None, lambda c, m: sink.errors.append(c))
+    on = {r: ing.handler(r) for r in ("color", "depth", "camera_info", "depth_camera_info")}
+    color_intr, depth_intr = Intrinsics(16, 12, 12.0, 12.0, 8.0, 6.0), Intrinsics(8, 6, 8.0, 8.0, 4.0, 3.0)
+    on["camera_info"](ros.serialize(ros.camera_info_message(color_intr, 0, "cam")))
+    on["depth_camera_info"](ros.serialize(ros.camera_info_message(depth_intr, 0, "depth")))
+    on["color"](ros.serialize(ros.color_message(np.full((12, 16, 3), 90, np.uint8), 10, "cam")))
+    on["depth"](ros.serialize(ros.depth_message(np.full((6, 8), 1.5, np.float32), 10, "depth")))
+    assert len(sink.frames) == 1 and not ing.drops, dict(ing.drops)
+    frame = decode_frame(sink.frames[0])
+    assert frame.depth.shape == (12, 16) and np.all(np.isin(frame.depth, (0.0, 1.5)))
+    # the depth camera's view at 1.5 m: x in [-0.70, 0.80] m, y in [-0.56, 0.56] m -> colour u 2.4..14.4,
+    # v 1.5..10.5: the pixels whose centres lie within
+    cols, rows = np.flatnonzero((frame.depth > 0).any(0)), np.flatnonzero((frame.depth > 0).any(1))
+    assert (cols.min(), cols.max(), rows.min(), rows.max()) == (2, 13, 2, 10), (cols, rows)
+    on["depth"](ros.serialize(ros.depth_message(np.full((5, 8), 1.5, np.float32), 20, "depth")))  # not its size
+    on["color"](ros.serialize(ros.color_message(np.full((12, 16, 3), 90, np.uint8), 20, "cam")))
+    assert len(sink.frames) == 1 and ing.drops["ros_size_mismatch"] == 1
+
+
 def test_tf_messages_take_only_the_base_transform():
     ing, sink = _ingest(pose_type="tf", world_frame="odom")
     base = _pose(5)

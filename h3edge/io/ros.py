@@ -292,7 +292,13 @@ class RosConfig:
     """sensor_msgs/CameraInfo of the colour camera (the intrinsics)"""
     depth_camera_info_topic: str = "/camera/aligned_depth_to_color/camera_info"
     """sensor_msgs/CameraInfo of the depth images: when it differs from the colour camera's, depth is not registered to
-    colour and its frames are refused, never mapped misaligned ("": no check)"""
+    colour: registered into the colour camera with ``depth_to_color``, else its frames are refused, never mapped
+    misaligned ("": no check)"""
+    depth_to_color: str = ""
+    """the depth camera's optical frame in the colour camera's optical frame, "x y z qx qy qz qw" (metres; the driver's
+    depth -> colour extrinsics, the tf colour_optical -> depth_optical) or "identity": depth whose camera info differs
+    from the colour camera's is registered into the colour camera (:mod:`h3edge.geometry.registration`); "": such
+    depth is refused"""
     pose_topic: str = "/odom"
     """the robot's pose topic (see pose_type)"""
     pose_type: str = "odometry"
@@ -320,6 +326,8 @@ class RosConfig:
             raise ValueError(f"pose_type {self.pose_type!r} is not one of {sorted(POSE_TYPES)}")
         if self.base_to_camera:
             extrinsic_matrix(self.base_to_camera)
+        if self.depth_to_color:
+            extrinsic_matrix(self.depth_to_color, "depth_to_color")
 
     def keys(self) -> dict[str, str]:
         """Zenoh key expression of each input (role -> key)."""
@@ -340,13 +348,15 @@ def registration_mismatch(color: Intrinsics, depth: Intrinsics) -> str | None:
             not np.allclose([depth.cx, depth.cy], [color.cx, color.cy], atol=1.0):
         return (f"depth is not registered to colour: depth camera {depth.width}x{depth.height} fx {depth.fx:.1f} "
                 f"cx {depth.cx:.1f}, colour camera {color.width}x{color.height} fx {color.fx:.1f} cx {color.cx:.1f}; "
-                "use depth aligned to colour (e.g. the driver's aligned_depth_to_color), or set "
-                "depth_camera_info_topic to \"\" if it is registered")
+                "give the depth -> colour extrinsics (depth_to_color, --depth-to-color) to register it, use depth "
+                "aligned to colour (e.g. the driver's aligned_depth_to_color), or set depth_camera_info_topic to "
+                "\"\" if it is registered")
     return None
 
 
-def extrinsic_matrix(spec: str) -> np.ndarray:
-    """4x4 base -> camera-optical transform from ``"x y z qx qy qz qw"`` or ``"identity"``."""
+def extrinsic_matrix(spec: str, name: str = "base_to_camera") -> np.ndarray:
+    """4x4 rigid transform (the base -> camera-optical extrinsic, or the one setting ``name`` says)
+    from ``"x y z qx qy qz qw"`` or ``"identity"``."""
     if spec.strip() == "identity":
         return np.eye(4)
     try:
@@ -354,11 +364,14 @@ def extrinsic_matrix(spec: str) -> np.ndarray:
     except ValueError:
         v = []
     if len(v) != 7 or not np.isfinite(v).all():
-        raise ValueError(f"base_to_camera {spec!r}: give 'x y z qx qy qz qw' (7 numbers) or 'identity'")
-    m = pose_from_tq(np.array(v[:3]), np.array(v[3:]))
+        raise ValueError(f"{name} {spec!r}: give 'x y z qx qy qz qw' (7 numbers) or 'identity'")
+    try:
+        m = pose_from_tq(np.array(v[:3]), np.array(v[3:]))
+    except ValueError as e:
+        raise ValueError(f"{name}: {e}") from None
     err = rigid_error(m)
     if err:
-        raise ValueError(f"base_to_camera: {err}")
+        raise ValueError(f"{name}: {err}")
     return m
 
 

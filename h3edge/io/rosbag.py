@@ -6,6 +6,9 @@ camera info and every pose message. Colour and depth are paired by nearest stamp
 ``pair_tolerance_s``; each pair becomes a frame whose pose is the base pose interpolated at the
 colour stamp (SLERP, between poses at most ``MAX_POSE_GAP_S`` apart) composed with the extrinsic.
 Pairs without a pose or camera info are left out, counted in :attr:`RosbagSequence.skipped`.
+Depth whose own camera info (``depth_camera_info_topic``) differs from the colour camera's is
+registered into the colour camera with ``depth_to_color`` (:mod:`h3edge.geometry.registration`),
+or the bag is refused.
 Reading a frame fetches its two messages by their bag time.
 
 :func:`write_rosbag` records a sequence as a robot would publish it (colour ``bgr8``, depth
@@ -23,6 +26,7 @@ import numpy as np
 import h3edge.io.ros as ros
 from h3edge.geometry.camera import Intrinsics, invert_pose
 from h3edge.geometry.poses import interpolate_pose
+from h3edge.geometry.registration import register_depth
 from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import DatasetError, Frame, SequenceBase
 
@@ -64,19 +68,28 @@ class RosbagSequence(SequenceBase):
             raise DatasetError(f"{self.root}: topics {missing} not in the bag (it has {sorted(conns)})")
         self._conns = {role: conns[t] for role, t in want.items()}
         self._scan()
-        if cfg.depth_camera_info_topic in conns:  # depth from its own camera: refused unless registered to colour
+        # depth from its own camera: registered into the colour camera with cfg.depth_to_color, else refused
+        self._registration: tuple[Intrinsics, np.ndarray] | None = None
+        if cfg.depth_camera_info_topic in conns:
             self._check_registration(conns[cfg.depth_camera_info_topic])
 
     def _check_registration(self, conn) -> None:
-        """DatasetError when the bag's depth camera info says its depth is not registered to colour."""
+        """Where the bag's depth camera info says its depth is not registered to colour: the depth
+        camera and the depth -> colour transform it is registered with, or DatasetError without
+        ``depth_to_color``."""
         for _, _, raw in self._reader.messages(connections=[conn]):
             try:
                 depth = ros.camera_intrinsics(self._reader.deserialize(raw, conn.msgtype))
             except ros.RosMessageError as e:
                 raise DatasetError(f"{self.root}: {self.cfg.depth_camera_info_topic}: {e}") from None
             why = ros.registration_mismatch(self.intrinsics, depth)
-            if why:
+            if why and not self.cfg.depth_to_color:
                 raise DatasetError(f"{self.root}: {why}")
+            if why:
+                self._registration = (depth, ros.extrinsic_matrix(self.cfg.depth_to_color, "depth_to_color"))
+                log.info("%s: depth (%dx%d, fx %.1f) registered into the colour camera (%dx%d, fx %.1f)", self.root,
+                         depth.width, depth.height, depth.fx, self.intrinsics.width, self.intrinsics.height,
+                         self.intrinsics.fx)
             return
 
     def _skip(self, why: str) -> None:
@@ -173,6 +186,11 @@ class RosbagSequence(SequenceBase):
             raise DatasetError(f"{self.root}: frame {i}: {e}") from None
         h, w = color.shape[:2]
         intr = self._infos.get((w, h))
+        if intr is not None and self._registration is not None:
+            try:
+                depth = register_depth(depth, self._registration[0], intr, self._registration[1])
+            except ValueError as e:
+                raise DatasetError(f"{self.root}: frame {i}: {e}") from None
         if intr is None or depth.shape != (h, w):
             raise DatasetError(f"{self.root}: frame {i}: colour {w}x{h}, depth {depth.shape[::-1]}, camera info for "
                                f"{sorted(self._infos)}: publish depth registered to the colour camera")
@@ -184,12 +202,14 @@ class RosbagSequence(SequenceBase):
 
 def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", rate: float = 30.0,
                  start_ns: int = 1_700_000_000_000_000_000, frames: int | None = None,
-                 depth_intrinsics: Intrinsics | None = None) -> Path:
+                 depth_intrinsics: Intrinsics | None = None, depth_to_color: np.ndarray | None = None) -> Path:
     """Record ``seq`` as a robot would publish it on ``cfg``'s topics (odometry of the base, whose
     pose with ``cfg.base_to_camera`` is the camera's); ``storage``: ``mcap`` or ``sqlite3`` (ROS 2
     bags), ``ros1`` (a ROS 1 ``.bag``: ROS 1 message definitions, ``K`` / ``D`` in the camera info).
     ``depth_intrinsics``: also a depth camera info (on ``cfg.depth_camera_info_topic``) saying so,
-    as a driver recording unregistered depth does."""
+    as a driver recording unregistered depth does; with ``depth_to_color`` (4x4, the depth camera's
+    optical frame in the colour camera's) the depth images are written as that depth camera sees
+    them (the sequence's depth registered into it), else as they are."""
     from rosbags.rosbag1 import Writer as Ros1Writer
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -230,6 +250,9 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
                 w.write(conn["depth_info"], t, encode(ros.camera_info_message(depth_intrinsics, t, cam),
                                                       ros.CAMERA_INFO))
             w.write(conn["color"], t, encode(ros.color_message(f.color, t, cam, "bgr8"), ros.IMAGE))
-            w.write(conn["depth"], t + 1000, encode(ros.depth_message(f.depth, t + 2_000_000, cam,
+            depth = f.depth
+            if depth_intrinsics is not None and depth_to_color is not None:
+                depth = register_depth(depth, f.intrinsics, depth_intrinsics, invert_pose(depth_to_color))
+            w.write(conn["depth"], t + 1000, encode(ros.depth_message(depth, t + 2_000_000, cam,
                                                                       depth_scale=cfg.depth_scale), ros.IMAGE))
     return out

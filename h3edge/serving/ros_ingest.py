@@ -13,6 +13,9 @@ into camera poses, both handed to the service's :class:`~h3edge.serving.ingest.I
   extrinsic ``base_to_camera``. There is no default extrinsic: without one (or ``identity``, said
   explicitly) the ROS ingest does not start. A TF message's transforms other than
   ``world_frame -> base_frame`` are ignored (not drops).
+- Depth from its own camera (a depth camera info on ``depth_camera_info_topic`` that differs from the
+  colour camera's) is registered into the colour camera with ``depth_to_color``
+  (:mod:`h3edge.geometry.registration`), or dropped as ``ros_depth_not_registered`` without it.
 - Frame ids are checked: images must be in ``camera_frame`` (when set), poses must place
   ``base_frame`` in ``world_frame`` (when set); a mismatch is a counted drop with the reason, as is
   every message that cannot be decoded or used.
@@ -32,6 +35,7 @@ import numpy as np
 
 from h3edge.errors import InputError
 from h3edge.geometry.camera import Intrinsics
+from h3edge.geometry.registration import register_depth
 from h3edge.io import ros
 from h3edge.io.protocol import FrameMessage, encode_frame
 from h3edge.io.ros import RosConfig, extrinsic_matrix
@@ -64,6 +68,8 @@ class RosIngest:
                              "the poses are the camera's own")
         self.cfg, self.max_pixels = cfg, max_pixels
         self.extrinsic = extrinsic_matrix(cfg.base_to_camera)
+        # depth from its own camera is registered into the colour camera with this (None: refused)
+        self.depth_to_color = extrinsic_matrix(cfg.depth_to_color, "depth_to_color") if cfg.depth_to_color else None
         self.submit_frame, self.add_pose, self.on_error = submit_frame, add_pose, on_error
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()  # frames leave in the order they were paired
@@ -174,9 +180,13 @@ class RosIngest:
             intr = self._infos.get((w, h))
             self._next_id += 1
             frame_id = self._next_id
-        if depth.array.shape != (h, w):
+        depth_info = self._depth_info
+        registers = (self.depth_to_color is not None and depth_info is not None
+                     and depth.array.shape == (depth_info.height, depth_info.width))
+        if depth.array.shape != (h, w) and not registers:
             self._drop("ros_size_mismatch", f"colour {w}x{h} and depth {depth.array.shape[1]}x{depth.array.shape[0]}"
-                                            " differ: publish depth registered to the colour camera")
+                                            " differ: publish depth registered to the colour camera, or its camera "
+                                            "info and the depth -> colour extrinsics (depth_to_color)")
             return
         if intr is None:
             with self._lock:
@@ -193,10 +203,17 @@ class RosIngest:
     def _send(self, frame_id: int, color: _Image, depth: _Image, intr: Intrinsics) -> None:
         depth_info = self._depth_info
         why = ros.registration_mismatch(intr, depth_info) if depth_info is not None else None
-        if why:
+        depth_m = depth.array
+        if why and self.depth_to_color is not None:
+            try:
+                depth_m = register_depth(depth_m, depth_info, intr, self.depth_to_color)
+            except ValueError as e:  # depth of another size than its camera info says
+                self._drop("ros_depth_not_registered", str(e))
+                return
+        elif why:
             self._drop("ros_depth_not_registered", why)
             return
-        msg = FrameMessage(color.stamp, frame_id, color.array, depth.array, intr, None, color.frame_id)
+        msg = FrameMessage(color.stamp, frame_id, color.array, depth_m, intr, None, color.frame_id)
         with self._lock:
             self.frames += 1
         self.submit_frame(encode_frame(msg, "raw_rgb8", "raw_f32"))
