@@ -51,8 +51,8 @@ def test_a_bag_of_depth_not_registered_to_colour_is_refused(tiny_scene, tmp_path
     i = seq[0].intrinsics
     wide = Intrinsics(i.width, i.height, i.fx * 0.64, i.fy * 0.64, i.cx, i.cy)
     bag = write_rosbag(seq, tmp_path / "unregistered.bag", cfg, "ros1", frames=3, depth_intrinsics=wide)
-    with pytest.raises(DatasetError, match="not registered to colour"):
-        open_sequence(bag, cfg)
+    with pytest.raises(DatasetError, match="not registered to colour.*depth_to_color.*no /tf_static chain"):
+        open_sequence(bag, cfg)  # neither extrinsics nor a /tf_static: refused, the way out named
     ok = write_rosbag(seq, tmp_path / "registered.mcap", cfg, "mcap", frames=3, depth_intrinsics=i)
     assert len(open_sequence(ok, cfg)) == 3
 
@@ -60,10 +60,11 @@ def test_a_bag_of_depth_not_registered_to_colour_is_refused(tiny_scene, tmp_path
 def test_depth_from_its_own_camera_is_registered_into_the_colour_camera(tiny_scene, tmp_path):
     """Issue [4/5] 14 and deliver 4: a ROS 1 recording of depth as a depth camera beside the colour
     camera measured it (its own focal length and principal point, 2.5 cm to the side, turned 2
-    degrees) maps aligned once the depth -> colour extrinsics are given: the frames' depth is the
-    colour camera's depth within millimetres wherever the depth camera saw; without them the bag is
-    refused with the setting named. A coarser depth camera (0.7x the pixels, 0.6x the focal length)
-    reads aligned too (the median), its splats constant across 1.7 colour pixels."""
+    degrees) maps aligned with the depth -> colour extrinsics given, or read from the bag's
+    /tf_static (a camera link to both optical frames): the frames' depth is the colour camera's
+    depth within millimetres wherever the depth camera saw. A coarser depth camera (0.7x the pixels,
+    0.6x the focal length) reads aligned too (the median), its splats constant across 1.7 colour
+    pixels; ROS 1 and 2 bags."""
     from h3edge.geometry.camera import Intrinsics
     from h3edge.geometry.poses import pose_from_tq
 
@@ -75,15 +76,15 @@ def test_depth_from_its_own_camera_is_registered_into_the_colour_camera(tiny_sce
     beside = Intrinsics(i.width, i.height, i.fx * 1.02, i.fy * 1.02, i.cx + 1.5, i.cy - 2.0)
     coarse = Intrinsics(int(i.width * 0.7), int(i.height * 0.7), i.fx * 0.6, i.fy * 0.6, i.cx * 0.7 + 1.5,
                         i.cy * 0.7 - 2.0)
-    for name, cam, within_2cm in (("beside", beside, 0.98), ("coarse", coarse, 0.5)):
-        bag = write_rosbag(seq, tmp_path / f"{name}.bag", RosConfig(base_to_camera=EXTRINSIC), "ros1", frames=2,
+    for name, cam, within_2cm, storage in (("beside.bag", beside, 0.98, "ros1"), ("coarse.mcap", coarse, 0.5, "mcap")):
+        bag = write_rosbag(seq, tmp_path / name, RosConfig(base_to_camera=EXTRINSIC), storage, frames=2,
                            depth_intrinsics=cam, depth_to_color=extr)
-        with pytest.raises(DatasetError, match="depth_to_color"):  # the refusal names the way out
-            open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC))
-        read = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC, depth_to_color=spec))
+        by_flag = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC, depth_to_color=spec))
+        by_tf = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC))  # the bag's /tf_static
         for k in range(2):
-            got, want = read[k].depth, seq[k].depth
-            assert got.shape == want.shape and read[k].intrinsics == i
+            got, want = by_flag[k].depth, seq[k].depth
+            assert np.array_equal(by_tf[k].depth, got) and by_flag[k].intrinsics == i
+            assert got.shape == want.shape
             both = (got > 0) & (want > 0)
             assert both.sum() > 0.5 * (want > 0).sum()
             err = np.abs(got[both] - want[both])

@@ -222,6 +222,29 @@ def poses_from_message(msg, msgtype: str, base_frame: str | None = None) -> list
     raise RosMessageError(f"{msgtype} is not a pose type ({', '.join(POSE_TYPES.values())})")
 
 
+def chained_transform(transforms: list[RosPose], target: str, source: str) -> np.ndarray | None:
+    """``target <- source`` (4x4) through a tree of static transforms (each ``parent <- child``, as
+    ``/tf_static`` carries them): both frames walked up to their root, None where they share none
+    (or a frame id is empty). The last transform given for a child wins."""
+    if not target or not source:
+        return None
+    parent = {t.child: t for t in transforms}
+
+    def to_root(frame: str) -> tuple[str, np.ndarray]:
+        m, seen = np.eye(4), {frame}
+        while frame in parent:
+            t = parent[frame]
+            m, frame = t.matrix @ m, t.parent
+            if frame in seen:  # a loop: no tree
+                break
+            seen.add(frame)
+        return frame, m
+
+    root_t, m_t = to_root(target)
+    root_s, m_s = to_root(source)
+    return np.linalg.inv(m_t) @ m_s if root_t == root_s else None
+
+
 def _pose_parts(matrix: np.ndarray):
     t = typestore().types
     q = quat_from_matrix(matrix[:3, :3])  # x, y, z, w

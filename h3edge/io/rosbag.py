@@ -7,8 +7,8 @@ camera info and every pose message. Colour and depth are paired by nearest stamp
 colour stamp (SLERP, between poses at most ``MAX_POSE_GAP_S`` apart) composed with the extrinsic.
 Pairs without a pose or camera info are left out, counted in :attr:`RosbagSequence.skipped`.
 Depth whose own camera info (``depth_camera_info_topic``) differs from the colour camera's is
-registered into the colour camera with ``depth_to_color`` (:mod:`h3edge.geometry.registration`),
-or the bag is refused.
+registered into the colour camera with ``depth_to_color`` (:mod:`h3edge.geometry.registration`) or
+the bag's ``/tf_static`` between the two cameras' frame ids, or the bag is refused.
 Reading a frame fetches its two messages by their bag time.
 
 :func:`write_rosbag` records a sequence as a robot would publish it (colour ``bgr8``, depth
@@ -24,13 +24,14 @@ from pathlib import Path
 import numpy as np
 
 import h3edge.io.ros as ros
-from h3edge.geometry.camera import Intrinsics, invert_pose
+from h3edge.geometry.camera import Intrinsics, invert_pose, rigid_error
 from h3edge.geometry.poses import interpolate_pose
 from h3edge.geometry.registration import register_depth
 from h3edge.io.ros import RosConfig
 from h3edge.io.sequence import DatasetError, Frame, SequenceBase
 
 log = logging.getLogger(__name__)
+TF_STATIC_TOPIC = "/tf_static"  # static transforms: the depth -> colour extrinsics of a recording, where it has them
 MAX_POSE_GAP_S = 0.2  # a frame is interpolated only between poses at most this far apart
 
 
@@ -59,6 +60,7 @@ class RosbagSequence(SequenceBase):
         self.root, self.cfg = Path(root), cfg
         self.extrinsic = ros.extrinsic_matrix(cfg.base_to_camera)
         self.skipped: dict[str, int] = {}
+        self._color_frame = ""  # the colour camera info's frame id
         self._reader = _reader(self.root)
         conns = {c.topic: c for c in self._reader.connections}
         want = {"color": cfg.color_topic, "depth": cfg.depth_topic, "camera_info": cfg.camera_info_topic,
@@ -71,26 +73,47 @@ class RosbagSequence(SequenceBase):
         # depth from its own camera: registered into the colour camera with cfg.depth_to_color, else refused
         self._registration: tuple[Intrinsics, np.ndarray] | None = None
         if cfg.depth_camera_info_topic in conns:
-            self._check_registration(conns[cfg.depth_camera_info_topic])
+            self._check_registration(conns[cfg.depth_camera_info_topic], conns.get(TF_STATIC_TOPIC))
 
-    def _check_registration(self, conn) -> None:
+    def _check_registration(self, conn, tf_static) -> None:
         """Where the bag's depth camera info says its depth is not registered to colour: the depth
-        camera and the depth -> colour transform it is registered with, or DatasetError without
-        ``depth_to_color``."""
+        camera and the depth -> colour transform it is registered with (``depth_to_color``, else the
+        bag's ``/tf_static`` between the two camera infos' frame ids), or DatasetError without either."""
         for _, _, raw in self._reader.messages(connections=[conn]):
             try:
-                depth = ros.camera_intrinsics(self._reader.deserialize(raw, conn.msgtype))
+                msg = self._reader.deserialize(raw, conn.msgtype)
+                depth = ros.camera_intrinsics(msg)
             except ros.RosMessageError as e:
                 raise DatasetError(f"{self.root}: {self.cfg.depth_camera_info_topic}: {e}") from None
             why = ros.registration_mismatch(self.intrinsics, depth)
-            if why and not self.cfg.depth_to_color:
-                raise DatasetError(f"{self.root}: {why}")
-            if why:
-                self._registration = (depth, ros.extrinsic_matrix(self.cfg.depth_to_color, "depth_to_color"))
-                log.info("%s: depth (%dx%d, fx %.1f) registered into the colour camera (%dx%d, fx %.1f)", self.root,
-                         depth.width, depth.height, depth.fx, self.intrinsics.width, self.intrinsics.height,
-                         self.intrinsics.fx)
+            if not why:
+                return
+            if self.cfg.depth_to_color:
+                extr, source = ros.extrinsic_matrix(self.cfg.depth_to_color, "depth_to_color"), "depth_to_color"
+            else:
+                extr = self._tf_static(tf_static, self._color_frame, msg.header.frame_id)
+                source = f"/tf_static {self._color_frame} <- {msg.header.frame_id}"
+                if extr is None:
+                    raise DatasetError(f"{self.root}: {why} (no /tf_static chain from the depth camera's frame "
+                                       f"{msg.header.frame_id!r} to the colour camera's {self._color_frame!r})")
+            self._registration = (depth, extr)
+            log.info("%s: depth (%dx%d, fx %.1f) registered into the colour camera (%dx%d, fx %.1f) with %s",
+                     self.root, depth.width, depth.height, depth.fx, self.intrinsics.width, self.intrinsics.height,
+                     self.intrinsics.fx, source)
             return
+
+    def _tf_static(self, conn, target: str, source: str) -> np.ndarray | None:
+        """``target <- source`` from the bag's static transforms (None: no chain, or no ``/tf_static``)."""
+        if conn is None:
+            return None
+        transforms = []
+        for _, _, raw in self._reader.messages(connections=[conn]):
+            try:
+                transforms += ros.poses_from_message(self._reader.deserialize(raw, conn.msgtype), ros.TF)
+            except ros.RosMessageError as e:
+                log.warning("%s: /tf_static: %s", self.root, e)
+        extr = ros.chained_transform(transforms, target, source)
+        return extr if extr is not None and rigid_error(extr) is None else None
 
     def _skip(self, why: str) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
@@ -114,6 +137,7 @@ class RosbagSequence(SequenceBase):
                 elif role == "camera_info":
                     intr = ros.camera_intrinsics(msg)
                     infos[(intr.width, intr.height)] = intr
+                    self._color_frame = msg.header.frame_id
                 else:
                     for p in ros.poses_from_message(msg, pose_type):
                         if ros.pose_mismatch(p, pose_type, cfg.world_frame, cfg.base_frame) is None:
@@ -209,7 +233,8 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
     ``depth_intrinsics``: also a depth camera info (on ``cfg.depth_camera_info_topic``) saying so,
     as a driver recording unregistered depth does; with ``depth_to_color`` (4x4, the depth camera's
     optical frame in the colour camera's) the depth images are written as that depth camera sees
-    them (the sequence's depth registered into it), else as they are."""
+    them (the sequence's depth registered into it, in its own frame id, with ``/tf_static`` from a
+    camera link to both optical frames), else as they are."""
     from rosbags.rosbag1 import Writer as Ros1Writer
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -222,7 +247,11 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
     n = len(seq) if frames is None else min(frames, len(seq))
     cam = cfg.camera_frame or "camera_color_optical_frame"
     if storage == "ros1":
+        from rosbags.typesys import get_types_from_msg
+
         writer, conn_ts = Ros1Writer(out), get_typestore(Stores.ROS1_NOETIC)
+        # ROS 1's tf2_msgs/TFMessage, which the Noetic store leaves out
+        conn_ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", ros.TF))
 
         def encode(msg, msgtype: str) -> bytes:  # the same fields in ROS 1's wire format
             return ts.cdr_to_ros1(ros.serialize(msg), msgtype)
@@ -237,8 +266,16 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
                 "depth": w.add_connection(cfg.depth_topic, ros.IMAGE, typestore=conn_ts),
                 "camera_info": w.add_connection(cfg.camera_info_topic, ros.CAMERA_INFO, typestore=conn_ts),
                 "pose": w.add_connection(cfg.pose_topic, ros.ODOMETRY, typestore=conn_ts)}
+        depth_cam = cam
         if depth_intrinsics is not None:
             conn["depth_info"] = w.add_connection(cfg.depth_camera_info_topic, ros.CAMERA_INFO, typestore=conn_ts)
+        if depth_intrinsics is not None and depth_to_color is not None:
+            # the driver's static tree: camera_link -> each optical frame
+            depth_cam = "camera_depth_optical_frame"
+            link_color = ros.extrinsic_matrix("0 0.015 0 -0.5 0.5 -0.5 0.5")
+            tf = ros.tf_message([(link_color, start_ns, "camera_link", cam),
+                                 (link_color @ depth_to_color, start_ns, "camera_link", depth_cam)])
+            w.write(w.add_connection(TF_STATIC_TOPIC, ros.TF, typestore=conn_ts), start_ns, encode(tf, ros.TF))
         for i in range(n):
             f = seq[i]
             t = start_ns + int(i * 1e9 / rate)
@@ -247,12 +284,12 @@ def write_rosbag(seq, out: str | Path, cfg: RosConfig, storage: str = "mcap", ra
                                             ros.ODOMETRY))
             w.write(conn["camera_info"], t, encode(ros.camera_info_message(f.intrinsics, t, cam), ros.CAMERA_INFO))
             if depth_intrinsics is not None:
-                w.write(conn["depth_info"], t, encode(ros.camera_info_message(depth_intrinsics, t, cam),
+                w.write(conn["depth_info"], t, encode(ros.camera_info_message(depth_intrinsics, t, depth_cam),
                                                       ros.CAMERA_INFO))
             w.write(conn["color"], t, encode(ros.color_message(f.color, t, cam, "bgr8"), ros.IMAGE))
             depth = f.depth
             if depth_intrinsics is not None and depth_to_color is not None:
                 depth = register_depth(depth, f.intrinsics, depth_intrinsics, invert_pose(depth_to_color))
-            w.write(conn["depth"], t + 1000, encode(ros.depth_message(depth, t + 2_000_000, cam,
+            w.write(conn["depth"], t + 1000, encode(ros.depth_message(depth, t + 2_000_000, depth_cam,
                                                                       depth_scale=cfg.depth_scale), ros.IMAGE))
     return out
