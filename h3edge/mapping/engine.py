@@ -262,13 +262,20 @@ class MapEngine:
         # called on the mapping thread after every training step: where a service hands out
         # consistent snapshots without waiting for the whole frame
         self.step_hook: Callable[[], None] | None = None
+        # the field, built before the first frame and moved to its pose then (building takes ~90 ms of
+        # random tables: at 30 Hz the first frame's integration would skip the next two frames)
+        self._unplaced: Field | None = None
         if self.bound is not None:
             self._build_field()
+        else:
+            half = np.full(3, self.cfg.extent / 2)
+            self._unplaced = self._new_field(np.stack([-half, half]))
 
     def __getstate__(self) -> dict:  # copies (tests) take the map, not its locks
         state = dict(self.__dict__)
         for k in ("_lock", "_turns", "_waiting", "_helper"):
             state.pop(k)
+        state["_unplaced"] = None  # a copy builds its field where it places it
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -276,10 +283,20 @@ class MapEngine:
         self._lock, self._turns, self._waiting, self._helper = threading.RLock(), threading.Condition(), 0, None
 
     # ----------------------------------------------------------------- set-up
-    def _build_field(self) -> None:
+    def _new_field(self, bound: np.ndarray) -> Field:
         torch.manual_seed(self.cfg.seed)
-        self.field = Field(self.settings.field, self.bound, self.settings.voxels.voxel_size, self.device,
-                           self.settings.texture)
+        return Field(self.settings.field, bound, self.settings.voxels.voxel_size, self.device, self.settings.texture)
+
+    def _build_field(self) -> None:
+        """The field over ``self.bound``: the one built before the first frame, moved there, where its
+        reference cube has that size (the same tables either way), else a new one."""
+        spare, self._unplaced = self._unplaced, None
+        size = self.bound[1] - self.bound[0]
+        if spare is not None and np.allclose(spare.geo_grid.bound_size.cpu().numpy(), size):
+            spare.place(self.bound[0])
+            self.field = spare
+        else:
+            self.field = self._new_field(self.bound)
         self.field.color_base = self.color_base
         # training locates its samples where the field runs: on the device with the torch backend
         self.voxels.device_lookup = self.field.geo_grid.backend == "torch"

@@ -105,6 +105,13 @@ class Field(nn.Module):
         # confirmed (:mod:`h3edge.mapping.residual_check`; set by the mapper, 1 until they have)
         self.residual_gain = 1.0
 
+    def place(self, lo: np.ndarray) -> None:
+        """Move the grids' reference cube to start at world point ``lo`` (3,) metres, its size kept:
+        the field reads at p what it read at p - (lo - the old start). Before any training only."""
+        with torch.no_grad():
+            for grid in self.hash_grids():
+                grid.bound_min.copy_(torch.as_tensor(np.asarray(lo, np.float32), device=grid.bound_min.device))
+
     def hash_grids(self) -> list[HashGrid]:
         return [self.geo_grid, self.texture.grid]
 
