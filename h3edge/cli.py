@@ -144,7 +144,8 @@ def _profile_with_overrides(args: argparse.Namespace):
     from h3edge.config import load_profile
 
     profile = load_profile(args.profile)
-    svc = {k: v for k, v in (("map_id", args.map_id), ("state_dir", args.state_dir)) if v}
+    svc = {k: v for k, v in (("map_id", args.map_id), ("state_dir", args.state_dir),
+                             ("site_from_world", getattr(args, "site_from_world", None))) if v}
     if svc:
         profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, **svc))
     if getattr(args, "device", None):
@@ -410,17 +411,38 @@ def _cmd_profile_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_fleet(args: argparse.Namespace) -> int:
+    import io
     import time
 
-    from h3edge.io.zenoh_session import open_session
-    from h3edge.serving.fleet import fleet_status, format_fleet
+    import numpy as np
 
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.fleet import fleet_sdf, fleet_status, format_fleet
+
+    if args.what == "sdf" and not args.points:
+        raise SystemExit("error: fleet sdf needs --points FILE (.npy (N, 3) float, or text x y z per line; site frame)")
     with open_session(_zenoh_conf(args)) as session:
         t0 = time.perf_counter()
-        entries = fleet_status(session, args.timeout)
+        if args.what == "status":
+            entries = fleet_status(session, args.timeout)
+            seconds = time.perf_counter() - t0
+            print(json.dumps(entries, indent=1) if args.json else format_fleet(entries, seconds))
+            return 0 if entries else 1
+        pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
+        d = fleet_sdf(session, pts, args.timeout, args.gradient)
         seconds = time.perf_counter() - t0
-    print(json.dumps(entries, indent=1) if args.json else format_fleet(entries, seconds))
-    return 0 if entries else 1
+    arrays = {"sdf": d.sdf, "state": d.state, "source": d.source}
+    if d.gradient is not None:
+        arrays["gradient"] = d.gradient
+    if args.out:
+        buf = io.BytesIO()
+        np.savez(buf, **arrays, maps=np.array(d.maps, dtype=str))
+        Path(args.out).write_bytes(buf.getvalue())
+    known = int((d.source >= 0).sum())
+    print(f"{len(d.sdf)} points, {known} known, from {d.maps} in {seconds * 1000:.0f} ms"
+          + (f"; no answer: {d.missing}" if d.missing else "") + (f"; not near: {d.skipped}" if d.skipped else "")
+          + (f"; wrote {args.out}" if args.out else ""))
+    return 0 if d.maps or not d.missing else 1
 
 
 def _cmd_deploy_plan(args: argparse.Namespace) -> int:
@@ -555,6 +577,8 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--state-dir", help="checkpoint directory (default: the profile's; StateDirectory under systemd)")
     sv.add_argument("--resume", action="store_true", help="restore the map from its checkpoint and go on")
     sv.add_argument("--device", help="override the profile's device (cpu, cuda, auto)")
+    sv.add_argument("--site-from-world", help="this map's world frame in the site frame a fleet shares, "
+                    "'x y z qx qy qz qw' ([service] site_from_world; default: the same frame)")
     sv.add_argument("--ros", action="store_true",
                     help="also take ROS 2 topics: colour, depth, camera info, odometry / pose / TF ([ros])")
     _add_ros_args(sv, keys=True)
@@ -603,9 +627,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_zenoh_args(q)
     q.set_defaults(func=_cmd_query)
 
-    fl = sub.add_parser("fleet", help="every h3edge service on the zenoh network (one wildcard query)")
-    fl.add_argument("what", choices=["status"])
-    fl.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the services' replies")
+    fl = sub.add_parser("fleet", help="every h3edge service on the zenoh network (one wildcard query): their "
+                        "status, or signed distance over all their maps")
+    fl.add_argument("what", choices=["status", "sdf"])
+    fl.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the services' replies (sdf: in "
+                    "all; a map that has not answered by then is named, not waited for)")
+    fl.add_argument("--points", help="sdf: points in the site frame (.npy (N, 3) float, or text x y z per line)")
+    fl.add_argument("--gradient", action="store_true", help="sdf: also the gradient (site frame)")
+    fl.add_argument("--out", help="sdf: write sdf, state, source (map index), maps[, gradient] as .npz")
     fl.add_argument("--json", action="store_true", help="print the status documents as JSON")
     _add_zenoh_args(fl)
     fl.set_defaults(func=_cmd_fleet)

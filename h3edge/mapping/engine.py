@@ -850,8 +850,13 @@ class MapEngine:
 
     def stats(self) -> dict:
         kf_bytes = sum(k.payload.nbytes for k in self.keyframes.keyframes if k.payload is not None)
-        grids = sum(g.table.numel() * 3 * 4 for g in self.field.hash_grids()) if self.field else 0
+        field = self.field or self._unplaced
+        grids = sum(g.table.numel() * 3 * 4 for g in field.hash_grids()) if field else 0
+        keys = unpack(self.voxels.voxel_keys) if len(self.voxels) else None
+        vs = self.settings.voxels.voxel_size
         return {
+            # m, world frame: the allocated voxels' box (None before any)
+            "bounds": None if keys is None else [(keys.min(0) * vs).tolist(), ((keys.max(0) + 1) * vs).tolist()],
             "frames_mapped": self.frames_mapped,
             "iterations": dict(self.iterations),
             "dropped": dict(self.dropped),

@@ -54,7 +54,7 @@ from h3edge.io.protocol import (
     decode_frame,
     encode_frame,
 )
-from h3edge.io.ros import RosConfig
+from h3edge.io.ros import RosConfig, extrinsic_matrix
 from h3edge.mapping.memory_plan import keyframe_bytes, memory_plan
 from h3edge.profiling.timing import DurationLog
 from h3edge.serving.association import PoseBuffer
@@ -73,6 +73,10 @@ class ServiceConfig:
     """the map's name: its zenoh keys (h3edge/<map_id>/...) and its folder under state_dir"""
     world_frame: str = "world"
     """the name of the frame the robot's poses, and so the map, are in (what a fleet's status lists beside the map)"""
+    site_from_world: str = ""
+    """where this map's world frame lies in the site frame a fleet shares, "x y z qx qy qz qw" (metres; the world
+    frame's origin and orientation in the site frame) or "" (the world frame is the site frame): fleet queries
+    (:mod:`h3edge.serving.fleet`) transform their site-frame points into this map with it"""
     state_dir: str = "/var/lib/h3edge"
     """checkpoints (systemd's StateDirectory)"""
     checkpoint_interval_s: float = 60.0
@@ -143,6 +147,9 @@ class MapService:
             settings.keyframes.max_bytes or 1 << 62, self.plan["keyframe_cap_bytes"]))
         self.settings = dataclasses.replace(settings, keyframes=kf)
         check_map_id(cfg.map_id)  # one file name under the state directory, one zenoh key chunk
+        # this map's world frame in the fleet's site frame (4x4)
+        self.site_from_world = (extrinsic_matrix(cfg.site_from_world, "site_from_world") if cfg.site_from_world
+                                else np.eye(4))
         self.state_dir = Path(cfg.state_dir)
         self.run_dir = self.state_dir / cfg.map_id  # checkpoint, profile.json, timings.jsonl
         self.mapper = Mapper(self.settings, profile=profile_name)
@@ -567,7 +574,8 @@ class MapService:
 
         delays = list(self._delays)
         last_mapped = self._recent_mapped[-1] if self._recent_mapped else None
-        return {"map_id": self.cfg.map_id, "world_frame": self.cfg.world_frame, "profile": self.profile_name,
+        return {"map_id": self.cfg.map_id, "world_frame": self.cfg.world_frame,
+                "site_from_world": self.site_from_world.tolist(), "profile": self.profile_name,
                 "device": str(self.mapper.device),
                 "last_frame_age_s": None if last_mapped is None else round(now - last_mapped, 1),
                 "inference": self.inference_info(),
@@ -583,7 +591,7 @@ class MapService:
                 "training": self.training_rate(),
                 "map": {k: s.get(k) for k in ("frames_mapped", "voxels", "voxels_refused", "vertices", "keyframes",
                                               "keyframes_pruned", "keyframes_evicted", "texture_classes",
-                                              "residual_gain")},
+                                              "residual_gain", "bounds")},
                 "memory": {"parts_bytes": s.get("memory_bytes", {}),
                            "total_bytes": int(sum(s.get("memory_bytes", {}).values())),
                            "budget_bytes": self.plan["budget"], "plan": self.plan},
