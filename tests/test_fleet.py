@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from h3edge.apps.demo import ServiceProcess
 from h3edge.io.zenoh_session import open_session, zenoh_config
@@ -63,6 +64,10 @@ def test_merged_distance_is_the_nearest_surface_any_map_knows():
     assert np.allclose(grad[0], [0, 1, 0]) and np.allclose(grad[1], [1, 0, 0]) and np.isnan(grad[4]).all()
     sdf, state, grad, source = merge_distances([], 3)
     assert np.isnan(sdf).all() and (state == UNKNOWN).all() and grad is None and (source == -1).all()
+    from h3edge.serving.fleet import fleet_sdf
+
+    with pytest.raises(ValueError, match="finite"):
+        fleet_sdf(None, np.array([[0.0, np.nan, 1.0]]), entries=[])
 
 
 def test_fleet_sdf_fans_out_to_the_maps_in_the_site_frame_within_its_deadline(tiny_scene, tmp_path):

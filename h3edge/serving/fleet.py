@@ -124,9 +124,12 @@ def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, 
     :func:`fleet_status` (or the given ``entries``), all asked at once within ``timeout`` seconds in
     all (the status query included): each map whose voxel box, grown by ``margin`` metres, holds some
     of the points is sent those points in its world frame; the answers merge with
-    :func:`merge_distances` (gradients rotated back into the site frame)."""
+    :func:`merge_distances` (gradients rotated back into the site frame). ValueError on points that
+    are not finite."""
     start = time.monotonic()
     pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if not np.isfinite(pts).all():
+        raise ValueError("fleet sdf points must be finite coordinates")
     if entries is None:
         entries = fleet_status(session, timeout)
     jobs, skipped = {}, []
