@@ -79,7 +79,8 @@ def test_depth_from_its_own_camera_is_registered_into_the_colour_camera(tiny_sce
     for name, cam, within_2cm, storage in (("beside.bag", beside, 0.98, "ros1"), ("coarse.mcap", coarse, 0.5, "mcap")):
         bag = write_rosbag(seq, tmp_path / name, RosConfig(base_to_camera=EXTRINSIC), storage, frames=2,
                            depth_intrinsics=cam, depth_to_color=extr)
-        by_flag = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC, depth_to_color=spec))
+        by_flag = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC, depth_to_color=spec,  # depth: its own frame
+                                               camera_frame="camera_color_optical_frame"))
         by_tf = open_sequence(bag, RosConfig(base_to_camera=EXTRINSIC))  # the bag's /tf_static
         for k in range(2):
             got, want = by_flag[k].depth, seq[k].depth

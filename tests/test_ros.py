@@ -227,12 +227,13 @@ def test_depth_not_registered_to_colour_is_refused_never_mapped_misaligned():
 def test_depth_from_its_own_camera_is_registered_live_with_the_extrinsics():
     """Issue [4/5] deliver 4, live: with ``depth_to_color`` set, depth of its own camera (another size
     and focal length, 5 cm to the side) becomes a frame whose depth is in the colour camera: a wall
-    1.5 m ahead reads 1.5 m where the depth camera saw it and 0 where it did not."""
+    1.5 m ahead reads 1.5 m where the depth camera saw it and 0 where it did not; the depth images
+    carry their own camera's frame id, which ``camera_frame`` (the colour camera's) does not refuse."""
     from h3edge.io.protocol import decode_frame
 
     sink = Sink()
-    ing = RosIngest(RosConfig(base_to_camera=EXTRINSIC, depth_to_color="0.05 0 0 0 0 0 1"), sink.frames.append,
-                    lambda t, p: None, lambda c, m: sink.errors.append(c))
+    ing = RosIngest(RosConfig(base_to_camera=EXTRINSIC, depth_to_color="0.05 0 0 0 0 0 1", camera_frame="cam"),
+                    sink.frames.append, lambda t, p: None, lambda c, m: sink.errors.append(c))
     on = {r: ing.handler(r) for r in ("color", "depth", "camera_info", "depth_camera_info")}
     color_intr, depth_intr = Intrinsics(16, 12, 12.0, 12.0, 8.0, 6.0), Intrinsics(8, 6, 8.0, 8.0, 4.0, 3.0)
     on["camera_info"](ros.serialize(ros.camera_info_message(color_intr, 0, "cam")))

@@ -331,7 +331,7 @@ class RosConfig:
     base_frame: str = "base_link"
     """the frame the poses place (Odometry child frame; TF child)"""
     camera_frame: str = ""
-    """images must carry this frame id ("": any)"""
+    """images must carry this frame id ("": any); depth that ``depth_to_color`` registers carries its own camera's"""
     base_to_camera: str = ""
     """base -> camera optical frame as "x y z qx qy qz qw" (metres, quaternion: the order of
     static_transform_publisher), or "identity" when the poses already are the camera's"""

@@ -130,7 +130,8 @@ class RosbagSequence(SequenceBase):
             try:
                 msg = self._reader.deserialize(raw, conn.msgtype)
                 if role in stamps:
-                    if cfg.camera_frame and msg.header.frame_id != cfg.camera_frame:
+                    own_camera = role == "depth" and cfg.depth_to_color  # registered from its own frame
+                    if cfg.camera_frame and msg.header.frame_id != cfg.camera_frame and not own_camera:
                         self._skip("frame_id")
                         continue
                     stamps[role].append((ros.stamp_ns(msg.header), bag_t))

@@ -119,7 +119,8 @@ class RosIngest:
             self._drop("ros_image_too_large", f"{what} image {msg.width}x{msg.height}: more than {self.max_pixels} "
                                               "pixels")
             return None
-        if self.cfg.camera_frame and msg.header.frame_id != self.cfg.camera_frame:
+        own_camera = depth and self.depth_to_color is not None  # depth in its own camera's frame, registered
+        if self.cfg.camera_frame and msg.header.frame_id != self.cfg.camera_frame and not own_camera:
             self._drop("ros_frame_id", f"{'depth' if depth else 'colour'} image in frame {msg.header.frame_id!r}, "
                                        f"not camera_frame {self.cfg.camera_frame!r}")
             return None
