@@ -68,6 +68,14 @@ def test_merged_distance_is_the_nearest_surface_any_map_knows():
 
     with pytest.raises(ValueError, match="finite"):
         fleet_sdf(None, np.array([[0.0, np.nan, 1.0]]), entries=[])
+    # statuses whose site transform or box is malformed cost that map, named, not the query
+    odd = [{"map_id": "skewed", "status": {"site_from_world": np.diag([2.0, 1, 1, 1]).tolist(), "map": {}}},
+           {"map_id": "short", "status": {"site_from_world": [1, 2, 3], "map": {}}},
+           {"map_id": "nan-box", "status": {"map": {"bounds": [[0, 0, 0], [np.nan, 1, 1]]}}},
+           {"map_id": "empty", "status": {"map": {"bounds": None}}}]
+    d = fleet_sdf(None, np.zeros((2, 3)), entries=odd)
+    assert sorted(d.missing) == ["nan-box", "short", "skewed"] and d.skipped == ["empty"] and not d.maps
+    assert (d.state == UNKNOWN).all()
 
 
 def test_fleet_sdf_fans_out_to_the_maps_in_the_site_frame_within_its_deadline(tiny_scene, tmp_path):

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from h3edge.geometry.camera import invert_pose
+from h3edge.geometry.camera import invert_pose, rigid_error
 from h3edge.io.distance_types import UNKNOWN
 from h3edge.io.protocol import Keys
 from h3edge.serving.client import RemoteError, query, read_npz
@@ -112,10 +112,17 @@ def merge_distances(answers: list[tuple[np.ndarray, np.ndarray, np.ndarray | Non
 
 def _map_geometry(status: dict) -> tuple[np.ndarray, np.ndarray | None]:
     """A status's site_from_world (4, 4) (identity where it has none) and its map's voxel box (2, 3)
-    in its world frame (None: no voxel yet)."""
-    t = np.asarray(status.get("site_from_world") or np.eye(4), np.float64).reshape(4, 4)
-    box = (status.get("map") or {}).get("bounds")
-    return t, None if box is None else np.asarray(box, np.float64).reshape(2, 3)
+    in its world frame (None: no voxel yet); ValueError where either is malformed."""
+    try:
+        t = np.asarray(status.get("site_from_world") or np.eye(4), np.float64).reshape(4, 4)
+        box = (status.get("map") or {}).get("bounds")
+        box = None if box is None else np.asarray(box, np.float64).reshape(2, 3)
+    except (TypeError, ValueError, AttributeError) as e:
+        raise ValueError(f"malformed site_from_world or map bounds: {e}") from None
+    err = rigid_error(t)
+    if err or (box is not None and not np.isfinite(box).all()):
+        raise ValueError(f"site_from_world is not a rigid transform ({err})" if err else "map bounds not finite")
+    return t, box
 
 
 def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, gradient: bool = False,
@@ -132,12 +139,16 @@ def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, 
         raise ValueError("fleet sdf points must be finite coordinates")
     if entries is None:
         entries = fleet_status(session, timeout)
-    jobs, skipped = {}, []
+    jobs, skipped, missing = {}, [], {}
     for e in entries:
         st = e.get("status")
         if st is None:
             continue
-        site_from_world, box = _map_geometry(st)
+        try:
+            site_from_world, box = _map_geometry(st)
+        except ValueError as err:  # one odd status costs that map, not the query
+            missing[e["map_id"]] = str(err)[:200]
+            continue
         world_from_site = invert_pose(site_from_world)
         local = pts @ world_from_site[:3, :3].T + world_from_site[:3, 3]
         near = (np.flatnonzero(((local >= box[0] - margin) & (local <= box[1] + margin)).all(1))
@@ -146,7 +157,7 @@ def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, 
             skipped.append(e["map_id"])
             continue
         jobs[e["map_id"]] = (near, local[near], site_from_world)
-    answers, maps, missing = [], [], {}
+    answers, maps = [], []
     if jobs:
         left = max(0.05, timeout - (time.monotonic() - start))
         with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
@@ -156,21 +167,20 @@ def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, 
                        for mid, (_, local, _) in jobs.items()}
             for mid, fut in futures.items():
                 near, _, site_from_world = jobs[mid]
+                d = np.full(len(pts), np.nan, np.float32)
+                s = np.full(len(pts), UNKNOWN, np.uint8)
+                g = np.zeros((len(pts), 3), np.float32) if gradient else None
                 try:
                     a = read_npz(fut.result())
+                    d[near], s[near] = a["sdf"], a["state"]  # a reply of another length: that map's error
+                    if gradient:
+                        local_g = np.asarray(a["gradient"], np.float64).reshape(len(near), 3)
+                        # rotated into the site frame; a gradient with a NaN in it has no direction (all NaN)
+                        g[near] = np.where(np.isfinite(local_g).all(1, keepdims=True),
+                                           local_g @ site_from_world[:3, :3].T, np.nan)
                 except (TimeoutError, RemoteError, OSError, ValueError, KeyError) as err:
                     missing[mid] = f"{type(err).__name__}: {err}"[:200]
                     continue
-                d = np.full(len(pts), np.nan, np.float32)
-                s = np.full(len(pts), UNKNOWN, np.uint8)
-                d[near], s[near] = a["sdf"], a["state"]
-                g = None
-                if gradient:
-                    g = np.zeros((len(pts), 3), np.float32)
-                    local_g = np.asarray(a["gradient"], np.float64)
-                    # rotated into the site frame; a gradient with a NaN in it has no direction (all NaN)
-                    g[near] = np.where(np.isfinite(local_g).all(1, keepdims=True),
-                                       local_g @ site_from_world[:3, :3].T, np.nan)
                 answers.append((d, s, g))
                 maps.append(mid)
     sdf, state, grad, source = merge_distances(answers, len(pts))
