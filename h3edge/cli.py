@@ -195,7 +195,19 @@ def _add_ros_args(p: argparse.ArgumentParser, keys: bool = False) -> None:
 def _cmd_serve(args: argparse.Namespace) -> int:
     from h3edge.apps.daemon import serve
 
-    return serve(_profile_with_overrides(args), _zenoh_conf(args), resume=args.resume, ros=args.ros)
+    profile = _profile_with_overrides(args)
+    if args.fleet_checkpoints:
+        profile = dataclasses.replace(profile, service=dataclasses.replace(profile.service, fleet_checkpoints=True))
+    return serve(profile, _zenoh_conf(args), resume=args.resume, ros=args.ros,
+                 resume_from_fleet=args.fleet_timeout if args.resume_from_fleet else None)
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    from h3edge.apps.router import run_router
+    from h3edge.io.zenoh_session import zenoh_config
+
+    listen = args.listen or (None if args.zenoh_config else ["tcp/[::]:7447"])  # the config's own wins
+    return run_router(zenoh_config(args.zenoh_config, None, args.connect, listen, False if args.no_multicast else None))
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
@@ -294,22 +306,13 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from h3edge.geometry.camera import look_at
-    from h3edge.io.protocol import pose_from_json
     from h3edge.serving.client import Client, RemoteError
 
     what = args.what
     if what == "render":
         if not args.out:
             raise SystemExit("error: render needs --out PREFIX")
-        if args.pose:
-            v = _parse_floats(args.pose, 7, "--pose (tx ty tz qx qy qz qw)")
-            c2w = pose_from_json({"t": v[:3], "q": v[3:]}, "--pose")
-        elif args.look_at:
-            v = _parse_floats(args.look_at, 6, "--look-at (eye xyz, target xyz)")
-            c2w = look_at(np.array(v[:3]), np.array(v[3:]))
-        else:
-            raise SystemExit("error: render needs --pose or --look-at")
+        c2w = _camera_pose(args)
     elif what == "sdf" and not args.points:
         raise SystemExit("error: sdf needs --points FILE (.npy (N, 3) or text x y z per line)")
     elif what == "slice" and (args.z is None or not args.aabb):
@@ -411,39 +414,108 @@ def _cmd_profile_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_fleet(args: argparse.Namespace) -> int:
-    import io
     import time
 
     import numpy as np
 
     from h3edge.io.zenoh_session import open_session
-    from h3edge.serving.fleet import fleet_sdf, fleet_status, format_fleet
+    from h3edge.serving import fleet as fl
 
-    if args.what == "sdf" and not args.points:
-        raise SystemExit("error: fleet sdf needs --points FILE (.npy (N, 3) float, or text x y z per line; site frame)")
+    needs = {"sdf": (args.points, "--points FILE (.npy (N, 3) float, or text x y z per line; site frame)"),
+             "slice": (args.z is not None and args.aabb, "--z and --aabb x0,y0,x1,y1 (site frame)"),
+             "render": (args.out and (args.pose or args.look_at), "--out PREFIX and --pose or --look-at"),
+             "mesh": (args.out, "--out FILE (.ply, .obj or .glb: one node per map)"),
+             "keep": (args.dir, "--dir DIRECTORY")}
+    if args.what in needs and not needs[args.what][0]:
+        raise SystemExit(f"error: fleet {args.what} needs {needs[args.what][1]}")
     with open_session(_zenoh_conf(args)) as session:
+        if args.what == "keep":
+            return _fleet_keep(session, args)
         t0 = time.perf_counter()
         if args.what == "status":
-            entries = fleet_status(session, args.timeout)
+            entries = fl.fleet_status(session, args.timeout)
             seconds = time.perf_counter() - t0
-            print(json.dumps(entries, indent=1) if args.json else format_fleet(entries, seconds))
+            print(json.dumps(entries, indent=1) if args.json else fl.format_fleet(entries, seconds))
             return 0 if entries else 1
-        pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
-        d = fleet_sdf(session, pts, args.timeout, args.gradient)
+        if args.what == "sdf":
+            pts = np.load(args.points) if args.points.endswith(".npy") else np.loadtxt(args.points, ndmin=2)
+            d = fl.fleet_sdf(session, pts, args.timeout, args.gradient)
+            arrays = {"sdf": d.sdf, "state": d.state, "source": d.source}
+            if d.gradient is not None:
+                arrays["gradient"] = d.gradient
+            what = f"{len(d.sdf)} points, {int((d.source >= 0).sum())} known"
+        elif args.what == "slice":
+            box = _parse_floats(args.aabb, 4, "--aabb (x0,y0,x1,y1)")
+            d = fl.fleet_slice(session, args.z, box[:2], box[2:], args.cell, args.timeout)
+            meta = {"resolution": d.slice.resolution, "origin": list(d.slice.origin), "frame": "site",
+                    "rows": "y up from origin"}
+            arrays = {"occupancy": d.slice.occupancy, "distance": d.slice.distance, "source": d.source,
+                      "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+            what = f"slice {d.source.shape[1]}x{d.source.shape[0]} cells, {int((d.source >= 0).sum())} known"
+        elif args.what == "render":
+            c2w = _camera_pose(args)
+            d = fl.fleet_render(session, c2w, args.width, args.height, fov_deg=args.fov, timeout=args.timeout)
+            from h3edge.io.sequence import write_color, write_depth
+
+            stem = Path(args.out).with_suffix("") if Path(args.out).suffix else Path(args.out)
+            Path(stem).parent.mkdir(parents=True, exist_ok=True)
+            write_color(Path(f"{stem}_color.png"), d.color)
+            write_depth(Path(f"{stem}_depth.png"), d.depth, 1000.0)
+            arrays, what = None, f"render {args.width}x{args.height}, {int((d.source >= 0).sum())} pixels seen"
+        else:
+            aabb = _parse_floats(args.aabb, 6, "--aabb (site x0,y0,z0,x1,y1,z1)") if args.aabb else None
+            d = fl.fleet_mesh(session, args.resolution, aabb, max(args.timeout, 30.0))
+            fmt = Path(args.out).suffix.lstrip(".") or "ply"
+            if fmt not in ("ply", "obj", "glb"):
+                raise SystemExit("error: fleet mesh --out must end in .ply, .obj or .glb")
+            Path(args.out).write_bytes(d.export(fmt))
+            arrays = None
+            what = "mesh " + ", ".join(f"{m}: {len(mesh.faces)} faces" for m, mesh in d.meshes.items())
         seconds = time.perf_counter() - t0
-    arrays = {"sdf": d.sdf, "state": d.state, "source": d.source}
-    if d.gradient is not None:
-        arrays["gradient"] = d.gradient
-    if args.out:
+    if arrays is not None and args.out:
+        import io
+
         buf = io.BytesIO()
         np.savez(buf, **arrays, maps=np.array(d.maps, dtype=str))
         Path(args.out).write_bytes(buf.getvalue())
-    known = int((d.source >= 0).sum())
-    print(f"{len(d.sdf)} points, {known} known, from {d.maps} in {seconds * 1000:.0f} ms"
+    print(f"{what} from {d.maps} in {seconds * 1000:.0f} ms"
           + (f"; no answer: {d.missing}" if d.missing else "") + (f"; not near: {d.skipped}" if d.skipped else "")
           + (f"; wrote {args.out}" if args.out else ""))
     return 0 if d.maps or not d.missing else 1
 
+
+def _fleet_keep(session, args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from h3edge.serving.keeping import CheckpointKeeper
+
+    keeper = CheckpointKeeper(session, Path(args.dir), int(args.max_mb * 2**20))
+    keeper.start()
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, _frame: stop.set())
+    logging.getLogger("h3edge.fleet").info("keeping the fleet's checkpoints in %s (%d kept)", args.dir,
+                                            len(keeper.kept))
+    stop.wait()
+    keeper.close()
+    return 0
+
+
+def _camera_pose(args: argparse.Namespace):
+    """The camera-to-world pose of ``--pose`` (tx ty tz qx qy qz qw) or ``--look-at`` (eye, target)."""
+    import numpy as np
+
+    from h3edge.geometry.camera import look_at
+    from h3edge.io.protocol import pose_from_json
+
+    if args.pose:
+        v = _parse_floats(args.pose, 7, "--pose (tx ty tz qx qy qz qw)")
+        return pose_from_json({"t": v[:3], "q": v[3:]}, "--pose")
+    if args.look_at:
+        v = _parse_floats(args.look_at, 6, "--look-at (eye xyz, target xyz)")
+        return look_at(np.array(v[:3]), np.array(v[3:]))
+    raise SystemExit("error: render needs --pose or --look-at")
 
 def _cmd_deploy_plan(args: argparse.Namespace) -> int:
     from h3edge.deploy import format_plan, plan
@@ -581,6 +653,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "'x y z qx qy qz qw' ([service] site_from_world; default: the same frame)")
     sv.add_argument("--ros", action="store_true",
                     help="also take ROS 2 topics: colour, depth, camera info, odometry / pose / TF ([ros])")
+    sv.add_argument("--fleet-checkpoints", action="store_true", help="publish every checkpoint for a fleet keeper "
+                    "([service] fleet_checkpoints)")
+    sv.add_argument("--resume-from-fleet", action="store_true", help="resume; first fetch the map from a fleet "
+                    "keeper when its copy is newer than the local checkpoint (after a lost disk)")
+    sv.add_argument("--fleet-timeout", type=float, default=30.0, help="seconds to wait for the keeper's answer")
     _add_ros_args(sv, keys=True)
     _add_zenoh_args(sv)
     sv.set_defaults(func=_cmd_serve)
@@ -627,17 +704,36 @@ def build_parser() -> argparse.ArgumentParser:
     _add_zenoh_args(q)
     q.set_defaults(func=_cmd_query)
 
-    fl = sub.add_parser("fleet", help="every h3edge service on the zenoh network (one wildcard query): their "
-                        "status, or signed distance over all their maps")
-    fl.add_argument("what", choices=["status", "sdf"])
-    fl.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the services' replies (sdf: in "
-                    "all; a map that has not answered by then is named, not waited for)")
+    fl = sub.add_parser("fleet", help="every h3edge service on the zenoh network as one map in the site frame: "
+                        "status, sdf, slice, render, mesh; keep: store their published checkpoints")
+    fl.add_argument("what", choices=["status", "sdf", "slice", "render", "mesh", "keep"])
+    fl.add_argument("--timeout", type=float, default=2.0, help="seconds a fan-out may take in all (mesh: at least "
+                    "30); a map that has not answered by then is named, not waited for")
     fl.add_argument("--points", help="sdf: points in the site frame (.npy (N, 3) float, or text x y z per line)")
     fl.add_argument("--gradient", action="store_true", help="sdf: also the gradient (site frame)")
-    fl.add_argument("--out", help="sdf: write sdf, state, source (map index), maps[, gradient] as .npz")
-    fl.add_argument("--json", action="store_true", help="print the status documents as JSON")
+    fl.add_argument("--out", help="sdf / slice: .npz (source: the map index of each answer, maps: their ids); "
+                    "render: PREFIX for _color.png and _depth.png; mesh: .ply, .obj or .glb")
+    fl.add_argument("--z", type=float, help="slice: height (m, site frame)")
+    fl.add_argument("--aabb", help="slice: x0,y0,x1,y1; mesh: x0,y0,z0,x1,y1,z1 (site metres)")
+    fl.add_argument("--cell", type=float, default=0.05, help="slice: metres per cell")
+    fl.add_argument("--pose", help="render: camera-to-site 'tx ty tz qx qy qz qw' (OpenCV optical axes)")
+    fl.add_argument("--look-at", help="render: 'ex ey ez tx ty tz' (eye and target, site frame)")
+    fl.add_argument("--width", type=int, default=640)
+    fl.add_argument("--height", type=int, default=480)
+    fl.add_argument("--fov", type=float, default=80.0, help="render: horizontal field of view (degrees)")
+    fl.add_argument("--resolution", type=int, help="mesh: marching-cubes cells per voxel edge")
+    fl.add_argument("--dir", help="keep: where the checkpoints are kept (<dir>/<map-id>/map.h3ckpt)")
+    fl.add_argument("--max-mb", type=float, default=1024.0, help="keep: largest checkpoint kept (MB)")
+    fl.add_argument("--json", action="store_true", help="status: print the status documents as JSON")
     _add_zenoh_args(fl)
     fl.set_defaults(func=_cmd_fleet)
+
+    rt = sub.add_parser("router", help="a zenoh router for a site's fleet (services and clients connect to it)")
+    rt.add_argument("--zenoh-config", help="zenoh JSON5 config (deploy/site/router.json5: TLS and per-robot ACL)")
+    rt.add_argument("--listen", action="append", help="endpoint to listen on (default tcp/[::]:7447)")
+    rt.add_argument("--connect", action="append", help="another router to connect to")
+    rt.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
+    rt.set_defaults(func=_cmd_router)
     _show_defaults(p)
     return p
 

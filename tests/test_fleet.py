@@ -1,4 +1,5 @@
-"""The fleet: two real services on loopback found and listed by one wildcard status query."""
+"""The fleet: real services on loopback, directly and behind `h3edge router`, found by one wildcard
+status query and asked as one map in a shared site frame; checkpoints kept by `h3edge fleet keep`."""
 
 from __future__ import annotations
 
@@ -12,39 +13,9 @@ import pytest
 
 from h3edge.apps.demo import ServiceProcess
 from h3edge.io.zenoh_session import open_session, zenoh_config
-from h3edge.serving.fleet import fleet_status, format_fleet
+from h3edge.serving.fleet import fleet_sdf, fleet_status, format_fleet
 
 PROFILE = Path(__file__).parent / "data" / "service-test.toml"
-
-
-def test_fleet_status_lists_every_service(tmp_path):
-    services = [ServiceProcess(PROFILE, tmp_path / m, m, tmp_path / f"{m}.log") for m in ("robot-a", "robot-b")]
-    try:
-        for s in services:
-            s.wait_listening()
-        endpoints = [s.endpoint for s in services]
-        with open_session(zenoh_config(None, "peer", endpoints, None, False)) as session:
-            entries = []
-            for _ in range(50):  # the services' queryables are declared just after they listen
-                entries = fleet_status(session, timeout=2.0)
-                if len(entries) == 2:
-                    break
-        assert [e["map_id"] for e in entries] == ["robot-a", "robot-b"], entries
-        for e in entries:
-            st = e["status"]
-            assert st["map_id"] == e["map_id"] and st["world_frame"] == "world"
-            assert st["frames"]["mapped"] == 0 and st["last_frame_age_s"] is None and st["mapper_alive"]
-        table = format_fleet(entries, 0.01)
-        assert "| robot-a | world | 0 |" in table and "2 map(s)" in table
-        cli = [sys.executable, "-m", "h3edge", "fleet", "status", "--mode", "peer", "--no-multicast"]
-        for ep in endpoints:
-            cli += ["--connect", ep]
-        out = subprocess.run(cli, capture_output=True, text=True, timeout=120)
-        assert out.returncode == 0, out.stderr
-        assert "robot-a" in out.stdout and "robot-b" in out.stdout
-    finally:
-        for s in services:
-            s.stop()
 
 
 def test_merged_distance_is_the_nearest_surface_any_map_knows():
@@ -180,3 +151,171 @@ def test_fleet_sdf_fans_out_to_the_maps_in_the_site_frame_within_its_deadline(ti
     finally:
         for s in services:
             s.stop()
+
+
+def _wait_for(predicate, timeout: float, what: str):
+    import time
+
+    end = time.monotonic() + timeout
+    while True:
+        got = predicate()
+        if got:
+            return got
+        assert time.monotonic() < end, f"timed out waiting for {what}"
+        time.sleep(0.3)
+
+
+def test_fleet_behind_a_router_answers_as_one_map_and_keeps_checkpoints(tiny_scene, tmp_path):
+    """`h3edge router` on loopback; three services connected to it map a third of the tiny scene
+    each, robot-c in a world frame turned 90 degrees and shifted in the site frame (its robot's poses
+    in that frame); a fourth service, not on the router, maps every frame. Through the router, as one
+    map: the status lists the three; the merged slice equals the whole map's cell by cell (as two
+    maps of the same frames do: the mapping's own error), the depth-composited render sees what the
+    whole map sees, the mesh has one part per map in the site frame. robot-a publishes its
+    checkpoints and `h3edge fleet keep` keeps them; a checkpoint put under another map's key, or
+    with a chunk changed, is not kept. robot-a's disk lost: `serve --resume-from-fleet` brings its
+    map back (same frames, same answers). A service killed mid-fan-out is named after the deadline."""
+    import signal
+    import threading
+    import time
+
+    import trimesh
+
+    from h3edge.apps.demo import free_port, wait_drained
+    from h3edge.io.distance_types import UNKNOWN
+    from h3edge.io.protocol import Keys
+    from h3edge.io.replica import ReplicaSequence
+    from h3edge.io.ros import extrinsic_matrix
+    from h3edge.serving.client import Client
+    from h3edge.serving.fleet import Fleet
+    from h3edge.serving.keeping import CHUNK_BYTES, publish_checkpoint
+    from h3edge.sim.publish import SubSequence, publish_sequence
+
+    seq = ReplicaSequence(tiny_scene)
+    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    procs = [subprocess.Popen([sys.executable, "-m", "h3edge", "router", "--listen", router_ep, "--no-multicast"],
+                              stdout=open(tmp_path / "router.log", "ab"), stderr=subprocess.STDOUT)]
+    keep_dir = tmp_path / "kept"
+    procs.append(subprocess.Popen([sys.executable, "-m", "h3edge", "fleet", "keep", "--dir", str(keep_dir), "--mode",
+                                   "client", "--connect", router_ep, "--no-multicast"],
+                                  stdout=open(tmp_path / "keep.log", "ab"), stderr=subprocess.STDOUT))
+    site_c = "5 2 0 0 0 0.7071067811865476 0.7071067811865476"
+    ids = ["robot-a", "robot-b", "robot-c"]
+
+    def robot(mid: str, *extra: str) -> ServiceProcess:
+        more = ["--site-from-world", site_c] if mid == "robot-c" else []
+        return ServiceProcess(PROFILE, tmp_path / mid, mid, tmp_path / f"{mid}.log",
+                              extra=["--connect", router_ep, *more, *extra])
+
+    services = {m: robot(m, *(["--fleet-checkpoints"] if m == "robot-a" else [])) for m in ids}
+    whole = ServiceProcess(PROFILE, tmp_path / "whole", "whole", tmp_path / "whole.log")
+    try:
+        for s in [*services.values(), whole]:
+            s.wait_listening()
+        conf = zenoh_config(None, "client", [router_ep], None, False)
+        with open_session(conf) as session, open_session(zenoh_config(None, "peer", [whole.endpoint], None,
+                                                                       False)) as wsession:
+            fleet = Fleet(session=session, timeout=10.0)
+            _wait_for(lambda: len(fleet_status(session, 2.0)) == 3, 60, "three services behind the router")
+            fresh = fleet.status()
+            assert all(e["status"]["last_frame_age_s"] is None and e["status"]["mapper_alive"] for e in fresh)
+            assert "| robot-a | world | 0 |" in format_fleet(fresh, 0.01) and "3 map(s)" in format_fleet(fresh)
+            world_from_site_c = np.linalg.inv(extrinsic_matrix(site_c, "site_from_world"))
+            streams = [(session, SubSequence(seq, part, world_from_site_c if mid == "robot-c" else None), mid)
+                       for mid, part in zip(ids, np.array_split(np.arange(len(seq)), 3))]
+            streams.append((wsession, seq, "whole"))
+            publishers = [threading.Thread(target=publish_sequence, args=(ses, sub, Keys.for_map(mid)),
+                                           kwargs={"rate": 4.0, "embed_pose": True}) for ses, sub, mid in streams]
+            for t in publishers:
+                t.start()
+            for t in publishers:
+                t.join()
+            for mid in ids:
+                assert wait_drained(session, Keys.for_map(mid), 300)["frames"]["dropped"] == 0
+            wait_drained(wsession, Keys.for_map("whole"), 300)
+            time.sleep(2.5)  # a fresh query snapshot of every map
+            entries = fleet.status()
+            assert [e["map_id"] for e in entries] == ids
+            cli = subprocess.run([sys.executable, "-m", "h3edge", "fleet", "status", "--mode", "client", "--connect",
+                                  router_ep, "--no-multicast"], capture_output=True, text=True, timeout=120)
+            assert cli.returncode == 0 and all(f"| {m} | world | " in cli.stdout for m in ids), cli.stderr
+            assert np.allclose(np.asarray(entries[2]["status"]["site_from_world"])[:3, 3], [5, 2, 0])
+            wc = Client("whole", session=wsession, timeout=60)
+            box = np.asarray(wc.status()["map"]["bounds"])
+            for z in (1.5,):  # mid-height: near the floor the tiny scene's free space is sparse in any map
+                fs = fleet.slice(z, box[0, :2], box[1, :2], 0.05)
+                ws = wc.slice(z, box[0, :2], box[1, :2], 0.05)
+                assert sorted(fs.maps) == ids and not fs.missing
+                both = (fs.slice.occupancy >= 0) & (ws.occupancy >= 0)
+                assert np.mean((ws.occupancy >= 0) & (fs.slice.occupancy < 0)) < 0.02  # the fleet knows what it knows
+                assert np.mean(fs.slice.occupancy[both] == ws.occupancy[both]) > 0.95
+                assert set(np.unique(fs.source[fs.source >= 0])) == {0, 1, 2}  # every map gave cells
+            f = seq.heldout[len(seq.heldout) // 2]
+            r = fleet.render(f.pose, intrinsics=f.intrinsics)
+            _, wd = wc.render(f.pose, intrinsics=f.intrinsics)
+            assert abs(np.mean(r.depth > 0) - np.mean(wd > 0)) < 0.02
+            seen = (r.depth > 0) & (wd > 0)
+            assert np.median(np.abs(r.depth - wd)[seen]) < 0.02 and len(np.unique(r.source[seen])) >= 2
+            m = fleet.mesh()
+            assert sorted(m.meshes) == ids and not m.missing
+            parts = trimesh.load(trimesh.util.wrap_as_stream(m.export("glb")), file_type="glb")
+            assert sorted(parts.geometry) == ids
+            wm = trimesh.load(trimesh.util.wrap_as_stream(wc.mesh("ply")), file_type="ply")
+            assert np.abs(trimesh.util.concatenate(list(m.meshes.values())).bounds - wm.bounds).max() < 0.1
+
+            # robot-a's checkpoints kept on another host
+            a = Client("robot-a", session=session, timeout=60)
+            a.save()
+            manifest = keep_dir / "robot-a" / "manifest.json"
+            _wait_for(manifest.exists, 60, "the keeper to keep robot-a's checkpoint")
+            kept = json.loads(manifest.read_text())
+            assert kept["frames_mapped"] == a.status()["map"]["frames_mapped"]
+            # not kept: robot-a's file under robot-b's key; a chunk changed
+            ckpt = tmp_path / "robot-a" / "robot-a" / "map.h3ckpt"
+            publish_checkpoint(session, "robot-b", ckpt)
+            torn = tmp_path / "torn.h3ckpt"
+            data = bytearray(ckpt.read_bytes())
+            data[min(len(data) - 1, CHUNK_BYTES + 7)] ^= 0xFF
+            torn.write_bytes(bytes(data))
+            publish_checkpoint(session, "robot-a", torn)
+            time.sleep(3.0)
+            assert not (keep_dir / "robot-b" / "map.h3ckpt").exists()
+            assert json.loads(manifest.read_text())["sha256"] == kept["sha256"]
+            assert "refused (invalid)" in (tmp_path / "keep.log").read_text()
+
+            probe = np.asarray(entries[0]["status"]["map"]["bounds"]).mean(0) + np.random.default_rng(1).uniform(
+                -1.5, 1.5, (300, 3))
+            answered = a.signed_distance(probe)  # the map trains on until it stops: compared within mm below
+            assert services["robot-a"].stop() == 0  # its final checkpoint goes to the keeper too
+            _wait_for(lambda: json.loads(manifest.read_text())["sha256"] != kept["sha256"]
+                      or json.loads(manifest.read_text())["kept_unix"] > kept["kept_unix"], 30, "the final checkpoint")
+            final = json.loads(manifest.read_text())
+            import hashlib
+            import shutil
+
+            shutil.rmtree(tmp_path / "robot-a")  # the robot's disk is lost
+            services["robot-a"] = robot("robot-a", "--resume-from-fleet", "--fleet-timeout", "20")
+            services["robot-a"].wait_listening()
+            _wait_for(lambda: any(e["map_id"] == "robot-a" for e in fleet_status(session, 2.0)), 60, "robot-a back")
+            st = a.status()
+            assert st["map"]["frames_mapped"] == final["frames_mapped"] == 14 and st["map"]["voxels"] > 0
+            restored = (tmp_path / "robot-a" / "robot-a" / "map.h3ckpt").read_bytes()
+            assert hashlib.sha256(restored).hexdigest() == final["sha256"]  # the very file it last wrote
+            after = a.signed_distance(probe)
+            assert np.mean(answered.state == after.state) > 0.95
+            known = (answered.state != UNKNOWN) & (after.state != UNKNOWN)
+            assert known.sum() > 50 and np.median(np.abs(answered.sdf[known] - after.sdf[known])) < 0.003
+
+            # a service killed (its status a moment old): named in the answer within the deadline, not waited for
+            entries = fleet.status()
+            services["robot-b"].proc.send_signal(signal.SIGKILL)
+            services["robot-b"].proc.wait(10)
+            t0 = time.monotonic()
+            d = fleet_sdf(session, probe, timeout=3.0, entries=entries)
+            assert time.monotonic() - t0 < 6.0 and "robot-b" in d.missing and "robot-a" in d.maps, d.missing
+    finally:
+        for s in [*services.values(), whole]:
+            s.stop()
+        for p in procs:
+            p.terminate()
+            p.wait(30)

@@ -25,12 +25,22 @@ log = logging.getLogger(__name__)
 
 
 def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event | None = None,
-          notifier: Notifier | None = None, ros: bool = False) -> int:
+          notifier: Notifier | None = None, ros: bool = False, resume_from_fleet: float | None = None) -> int:
     """Run the service until SIGTERM / SIGINT / ``stop``; ``ros``: also take the ROS 2 topics of the
-    profile's ``[ros]`` table. The exit code."""
+    profile's ``[ros]`` table; ``resume_from_fleet``: seconds to wait for a fleet keeper's copy of
+    the map when it is newer than the local checkpoint (after a lost disk), then resume. The exit code."""
     stop = stop or threading.Event()
     notifier = notifier or Notifier()
     cfg = profile.service
+    if resume_from_fleet is not None:
+        from pathlib import Path
+
+        from h3edge.serving.keeping import restore_from_fleet
+
+        with open_session(zconf) as session:  # closed again: the service opens its own below
+            log.info("%s", restore_from_fleet(session, cfg.map_id, Path(cfg.state_dir) / cfg.map_id,
+                                              resume_from_fleet))
+        resume = True
     service = MapService(profile.map_settings(), cfg, profile.name, resume=resume, inference=profile.inference,
                          ros=profile.ros if ros else None)
 
@@ -72,6 +82,8 @@ def serve(profile: Profile, zconf, resume: bool = False, stop: threading.Event |
         if not service.stop(checkpoint=True):  # the mapped frames since the last checkpoint are lost
             log.error("final checkpoint failed: %s", (service.last_error or {}).get("message"))
             rc = rc or 1
+        elif cfg.fleet_checkpoints and server.checkpoint_publisher is not None:
+            server.checkpoint_publisher.publish_new()  # the final one, for the fleet's keeper too
         session.close()
         log.info("h3edge stopped (exit %d)", rc)
     return rc

@@ -382,3 +382,9 @@ class Keys:
     export = property(lambda self: f"{self.base}/export")
     sdf = property(lambda self: f"{self.base}/sdf")
     slice = property(lambda self: f"{self.base}/slice")
+    checkpoint = property(lambda self: f"{self.base}/checkpoint")
+    """the map's checkpoints kept by the fleet: ``<checkpoint>/chunk/<k>`` and ``<checkpoint>/manifest``"""
+    checkpoint_manifest = property(lambda self: f"{self.base}/checkpoint/manifest")
+
+    def checkpoint_chunk(self, k: int) -> str:
+        return f"{self.base}/checkpoint/chunk/{int(k)}"

@@ -29,9 +29,17 @@ surface), and the distance (metres) from each known cell to the nearest occupied
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
-from h3edge.io.distance_types import FREE, INSIDE, NEAR, UNKNOWN, DistanceSample, DistanceSlice
+from h3edge.io.distance_types import (
+    FREE,
+    INSIDE,
+    NEAR,
+    UNKNOWN,
+    DistanceSample,
+    DistanceSlice,
+    slice_from_sample,
+    slice_grid,
+)
 from h3edge.mapping.raymarch import PriorLookup
 
 __all__ = ["FREE", "INSIDE", "NEAR", "UNKNOWN", "DistanceSample", "DistanceSlice", "distance_slice", "signed_distance"]
@@ -94,23 +102,6 @@ def signed_distance(view, points: np.ndarray, gradient: bool = False, chunk: int
 def distance_slice(view, z: float, lo: tuple[float, float], hi: tuple[float, float], resolution: float
                    ) -> DistanceSlice:
     """Occupancy and distance images of the rectangle ``lo``..``hi`` (x, y metres) at height ``z``."""
-    nx = max(1, int(np.ceil((hi[0] - lo[0]) / resolution)))
-    ny = max(1, int(np.ceil((hi[1] - lo[1]) / resolution)))
-    xs = lo[0] + (np.arange(nx) + 0.5) * resolution
-    ys = lo[1] + (np.arange(ny) + 0.5) * resolution
-    gx, gy = np.meshgrid(xs, ys)  # (ny, nx): row = y
-    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
+    pts, shape = slice_grid(z, lo, hi, resolution)
     sample = signed_distance(view, pts)
-    state = sample.state.reshape(ny, nx)
-    sdf = sample.sdf.reshape(ny, nx)
-    known = state != UNKNOWN
-    occupied = known & ((state == INSIDE) | ((state == NEAR) & (sdf <= 0.5 * resolution)))
-    occupancy = np.full((ny, nx), -1, np.int8)
-    occupancy[known] = 0
-    occupancy[occupied] = 100
-    if occupied.any():
-        dist = ndimage.distance_transform_edt(~occupied).astype(np.float32) * np.float32(resolution)
-    else:
-        dist = np.full((ny, nx), np.inf, np.float32)
-    dist[~known] = np.nan
-    return DistanceSlice(occupancy, dist, (float(lo[0]), float(lo[1]), float(z)), float(resolution))
+    return slice_from_sample(sample.sdf, sample.state, shape, z, lo, resolution)

@@ -32,19 +32,18 @@ from pathlib import Path
 
 import numpy as np
 
-from h3edge.errors import InputError
+from h3edge.io.checkpoint_file import (  # noqa: F401 (re-exported: the map file's envelope)
+    CHECKPOINT_NAME,
+    FORMAT_VERSION,
+    MAGIC,
+    CheckpointError,
+    previous_path,
+    read_header,
+)
 from h3edge.mapping.engine import MapEngine, MapSettings
 from h3edge.mapping.onnx_decoders import export_decoders
 from h3edge.mapping.raymarch import RenderConfig
 from h3edge.mapping.settings_file import map_settings_from_saved
-
-MAGIC = b"H3EDGE-CKPT\n"
-FORMAT_VERSION = 1
-CHECKPOINT_NAME = "map.h3ckpt"
-
-
-class CheckpointError(InputError):
-    """A checkpoint that cannot be used; the message says why."""
 
 
 def check_writable(directory: Path) -> None:
@@ -63,12 +62,6 @@ def check_writable(directory: Path) -> None:
             f"state directory {directory} is not writable ({type(e).__name__}: {e.strerror or e}); "
             "checkpoints could not be saved: fix its owner / permissions or pass --state-dir"
         ) from None
-
-
-def previous_path(path: Path) -> Path:
-    """Where the checkpoint before ``path``'s newest is kept."""
-    path = Path(path)
-    return path.with_name(path.name + ".prev")
 
 
 def remove_leftovers(directory: Path) -> list[Path]:
@@ -115,26 +108,6 @@ def write_checkpoint(path: Path, header: dict, arrays: dict[str, np.ndarray]) ->
     finally:
         os.close(dfd)
     return len(MAGIC) + 4 + len(hb) + size
-
-
-def read_header(path: Path) -> tuple[dict, int]:
-    """(header, payload offset) of a checkpoint file."""
-    with open(path, "rb") as f:
-        start = f.read(len(MAGIC) + 4)
-        if len(start) < len(MAGIC) + 4 or start[:len(MAGIC)] != MAGIC:
-            raise CheckpointError(f"{path}: not an h3edge checkpoint (bad magic)")
-        (n,) = struct.unpack("<I", start[len(MAGIC):])
-        raw = f.read(n)
-    if len(raw) != n:
-        raise CheckpointError(f"{path}: truncated header")
-    try:
-        header = json.loads(raw)
-    except json.JSONDecodeError as e:
-        raise CheckpointError(f"{path}: header is not JSON ({e})") from None
-    if header.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: format version {header.get('format_version')!r}, this build reads "
-                              f"{FORMAT_VERSION}")
-    return header, len(MAGIC) + 4 + n
 
 
 def read_checkpoint(path: Path) -> tuple[dict, dict[str, np.ndarray]]:

@@ -80,6 +80,27 @@ def save_render_reply(data: bytes, out: Path) -> tuple[Path, Path]:
     return cpath, dpath
 
 
+def open_client_session(config: str | zenoh.Config | None = None, connect: list[str] | None = None,
+                        mode: str | None = None, multicast: bool | None = None) -> zenoh.Session:
+    """A zenoh session for queries: ``config`` (a JSON5 file or a ``zenoh.Config``; default zenoh's:
+    peer, multicast scouting), with ``connect`` / ``mode`` / ``multicast`` overriding it."""
+    conf = config if isinstance(config, zenoh.Config) else zenoh_config(config, mode, connect, None, multicast)
+    return open_session(conf)
+
+
+def render_request(c2w, width: int = 320, height: int = 240, intrinsics: Intrinsics | None = None,
+                   fov_deg: float = 80.0) -> dict:
+    """A render query's JSON (raw colour and metres back) at camera-to-world ``c2w`` (4, 4):
+    ``intrinsics`` (its size wins) or a horizontal field of view ``fov_deg`` over ``width`` x ``height``."""
+    payload: dict = {"pose": pose_to_json(np.asarray(c2w, np.float64)), "raw": True}
+    if intrinsics is not None:
+        payload.update(width=intrinsics.width, height=intrinsics.height,
+                       intrinsics={"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy})
+    else:
+        payload.update(width=int(width), height=int(height), fov_deg=float(fov_deg))
+    return payload
+
+
 class Client:
     """Queries to the h3edge service of map ``map_id`` over zenoh.
 
@@ -106,13 +127,8 @@ class Client:
         open session to use instead (the client then does not close it)."""
         self.keys = Keys.for_map(map_id)
         self.timeout = timeout
-        if session is None:
-            conf = config if isinstance(config, zenoh.Config) else zenoh_config(config, mode, connect, None, multicast)
-            session = open_session(conf)
-            self._owned = True
-        else:
-            self._owned = False
-        self.session = session
+        self._owned = session is None
+        self.session = session if session is not None else open_client_session(config, connect, mode, multicast)
 
     def close(self) -> None:
         """Close the zenoh session (when the client opened it)."""
@@ -160,14 +176,7 @@ class Client:
         """The map seen from camera-to-world ``c2w`` (4, 4): colour uint8 (H, W, 3) RGB and z-depth
         float32 (H, W) metres (0: nothing). ``intrinsics`` (its size wins over ``width`` /
         ``height``) or a horizontal field of view ``fov_deg``."""
-        payload: dict = {"pose": pose_to_json(np.asarray(c2w, np.float64)), "raw": True}
-        if intrinsics is not None:
-            payload.update(width=intrinsics.width, height=intrinsics.height,
-                           intrinsics={"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx,
-                                       "cy": intrinsics.cy})
-        else:
-            payload.update(width=int(width), height=int(height), fov_deg=float(fov_deg))
-        msg = decode_frame(self._ask(self.keys.render, payload))
+        msg = decode_frame(self._ask(self.keys.render, render_request(c2w, width, height, intrinsics, fov_deg)))
         return msg.color, msg.depth
 
     def signed_distance(self, points, gradient: bool = False) -> DistanceSample:

@@ -1,20 +1,29 @@
-"""The fleet: every h3edge service on a zenoh network, found with one query.
+"""The fleet: every h3edge service on a zenoh network, found with one query and asked as one map.
 
 Each service answers its status on ``h3edge/<map-id>/status``; one query on the wildcard key
 ``h3edge/*/status`` reaches them all (``QueryTarget.ALL``), and with no consolidation every service's
 reply comes back, not one per key (:func:`fleet_status`). Zenoh routes it: through the routers of a
 site, or peer to peer. Nothing is registered anywhere; a service is in the fleet while it answers.
 
-One signed distance over many maps (:func:`fleet_sdf`): each status says where its map's world frame
-lies in the site frame the fleet shares (``[service] site_from_world``) and the box its voxels fill;
-the site-frame points are moved into each map whose box (plus a margin) they touch and asked of it,
-all maps at once, within one deadline; the answers merge into the nearest known surface
-(:func:`merge_distances`). A map that does not answer in time is named in the result, not waited for.
+One map over many (:class:`Fleet`, or the functions under it): each status says where its map's
+world frame lies in the site frame the fleet shares (``[service] site_from_world``) and the box its
+voxels fill. A request in the site frame goes to the maps it touches, moved into each map's frame,
+all maps at once within one deadline, and the answers merge:
+
+- signed distance (:func:`fleet_sdf`): the nearest surface any map knows (:func:`merge_distances`);
+- a slice (:func:`fleet_slice`): the merged signed distance at the slice's cell centres, turned into
+  occupancy and distance cell by cell as one map's slice is;
+- a render (:func:`fleet_render`): every map seen from the camera, composited by depth;
+- a mesh (:func:`fleet_mesh`): each map's mesh moved into the site frame, one per map.
+
+A map that does not answer in time is named in the result (``missing``), not waited for; a map the
+request does not come near is not asked (``skipped``).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import io
 import json
 import time
 from dataclasses import dataclass, field
@@ -22,10 +31,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from h3edge.geometry.camera import invert_pose, rigid_error
-from h3edge.io.distance_types import UNKNOWN
-from h3edge.io.protocol import Keys
-from h3edge.serving.client import RemoteError, query, read_npz
+from h3edge.geometry.camera import Intrinsics, invert_pose, rigid_error
+from h3edge.io.distance_types import UNKNOWN, DistanceSlice, slice_from_sample, slice_grid
+from h3edge.io.protocol import Keys, decode_frame
+from h3edge.serving.client import RemoteError, open_client_session, query, read_npz, render_request
 
 FLEET_STATUS_KEY = "h3edge/*/status"
 
@@ -59,7 +68,7 @@ def format_fleet(entries: list[dict], seconds: float | None = None) -> str:
             rows.append(f"| {e['map_id']} | {e['error']} | | | | | |")
             continue
         age = st.get("last_frame_age_s")
-        rows.append(f"| {e['map_id']} | {st.get('world_frame', '?')} | {st['frames']['mapped']} | "
+        rows.append(f"| {e['map_id']} | {st.get('world_frame', '?')} | {st['map'].get('frames_mapped') or 0} | "
                     f"{st['map'].get('voxels') or 0} | {st['memory']['total_bytes'] / 2**20:.0f} | "
                     f"{'-' if age is None else age} | {'alive' if st.get('mapper_alive') else 'stopped'} |")
     tail = f"\n{len(entries)} map(s)" + (f" answered in {seconds * 1000:.0f} ms" if seconds is not None else "")
@@ -110,6 +119,26 @@ def merge_distances(answers: list[tuple[np.ndarray, np.ndarray, np.ndarray | Non
     return sdf.astype(np.float32), state, grad, source
 
 
+@dataclass(frozen=True)
+class _Place:
+    """Where one map lies in the site frame: its id, site_from_world (4, 4), world_from_site and its
+    voxels' box (2, 3) in its own world frame (None: no voxel yet)."""
+
+    map_id: str
+    site_from_world: np.ndarray
+    world_from_site: np.ndarray
+    box: np.ndarray | None
+
+    def to_local(self, pts: np.ndarray) -> np.ndarray:
+        """Site-frame points (N, 3) in this map's world frame."""
+        return pts @ self.world_from_site[:3, :3].T + self.world_from_site[:3, 3]
+
+    def site_box_corners(self) -> np.ndarray:
+        """The 8 corners (8, 3) of the voxels' box in the site frame."""
+        c = np.array([[self.box[i, 0], self.box[j, 1], self.box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        return c @ self.site_from_world[:3, :3].T + self.site_from_world[:3, 3]
+
+
 def _map_geometry(status: dict) -> tuple[np.ndarray, np.ndarray | None]:
     """A status's site_from_world (4, 4) (identity where it has none) and its map's voxel box (2, 3)
     in its world frame (None: no voxel yet); ValueError where either is malformed."""
@@ -125,6 +154,52 @@ def _map_geometry(status: dict) -> tuple[np.ndarray, np.ndarray | None]:
     return t, box
 
 
+def _places(entries: list[dict], missing: dict[str, str]) -> list[_Place]:
+    """The maps of ``entries`` with their place in the site frame; a status whose site transform or
+    box is malformed costs that map (named in ``missing``), not the request."""
+    places = []
+    for e in entries:
+        st = e.get("status")
+        if st is None:
+            continue
+        try:
+            site_from_world, box = _map_geometry(st)
+        except ValueError as err:
+            missing[e["map_id"]] = str(err)[:200]
+            continue
+        places.append(_Place(e["map_id"], site_from_world, invert_pose(site_from_world), box))
+    return places
+
+
+def _ask_all(session: zenoh.Session, asks: dict[str, tuple[str, dict | bytes, str]], deadline: float,
+             read, missing: dict[str, str]) -> dict[str, object]:
+    """Each map's query ``(key, payload, params)`` at once, all before the monotonic ``deadline``;
+    ``read(map_id, reply bytes)`` of each answer, by map id. A map with no answer by then, an error
+    reply or an answer ``read`` refuses (ValueError, KeyError) is named in ``missing``."""
+    out: dict[str, object] = {}
+    if not asks:
+        return out
+    left = max(0.05, deadline - time.monotonic())
+    with concurrent.futures.ThreadPoolExecutor(len(asks)) as pool:
+        futures = {mid: pool.submit(query, session, key, payload, params, left)
+                   for mid, (key, payload, params) in asks.items()}
+        for mid, fut in futures.items():
+            try:
+                out[mid] = read(mid, fut.result())
+            except (TimeoutError, RemoteError, OSError, ValueError, KeyError) as err:
+                missing[mid] = f"{type(err).__name__}: {err}"[:200]
+    return out
+
+
+def _start(session: zenoh.Session, timeout: float, entries: list[dict] | None) -> tuple[float, list[_Place], dict]:
+    """(deadline, places, missing) of a fan-out that may take ``timeout`` seconds in all."""
+    deadline = time.monotonic() + timeout
+    if entries is None:
+        entries = fleet_status(session, timeout)
+    missing: dict[str, str] = {}
+    return deadline, _places(entries, missing), missing
+
+
 def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, gradient: bool = False,
               margin: float = SDF_MARGIN, entries: list[dict] | None = None) -> FleetDistance:
     """Signed distance at ``points`` (N, 3) metres in the site frame over every map that answers
@@ -133,55 +208,277 @@ def fleet_sdf(session: zenoh.Session, points: np.ndarray, timeout: float = 2.0, 
     of the points is sent those points in its world frame; the answers merge with
     :func:`merge_distances` (gradients rotated back into the site frame). ValueError on points that
     are not finite."""
-    start = time.monotonic()
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if not np.isfinite(pts).all():
         raise ValueError("fleet sdf points must be finite coordinates")
-    if entries is None:
-        entries = fleet_status(session, timeout)
-    jobs, skipped, missing = {}, [], {}
-    for e in entries:
-        st = e.get("status")
-        if st is None:
-            continue
-        try:
-            site_from_world, box = _map_geometry(st)
-        except ValueError as err:  # one odd status costs that map, not the query
-            missing[e["map_id"]] = str(err)[:200]
-            continue
-        world_from_site = invert_pose(site_from_world)
-        local = pts @ world_from_site[:3, :3].T + world_from_site[:3, 3]
-        near = (np.flatnonzero(((local >= box[0] - margin) & (local <= box[1] + margin)).all(1))
-                if box is not None else np.zeros(0, np.int64))
+    deadline, places, missing = _start(session, timeout, entries)
+    jobs, skipped = {}, []
+    for pl in places:
+        local = pl.to_local(pts)
+        near = (np.flatnonzero(((local >= pl.box[0] - margin) & (local <= pl.box[1] + margin)).all(1))
+                if pl.box is not None else np.zeros(0, np.int64))
         if len(near) == 0:
-            skipped.append(e["map_id"])
+            skipped.append(pl.map_id)
             continue
-        jobs[e["map_id"]] = (near, local[near], site_from_world)
-    answers, maps = [], []
-    if jobs:
-        left = max(0.05, timeout - (time.monotonic() - start))
-        with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
-            futures = {mid: pool.submit(query, session, Keys.for_map(mid).sdf,
-                                        np.ascontiguousarray(local, "<f4").tobytes(),
-                                        "gradient=true" if gradient else "", left)
-                       for mid, (_, local, _) in jobs.items()}
-            for mid, fut in futures.items():
-                near, _, site_from_world = jobs[mid]
-                d = np.full(len(pts), np.nan, np.float32)
-                s = np.full(len(pts), UNKNOWN, np.uint8)
-                g = np.zeros((len(pts), 3), np.float32) if gradient else None
-                try:
-                    a = read_npz(fut.result())
-                    d[near], s[near] = a["sdf"], a["state"]  # a reply of another length: that map's error
-                    if gradient:
-                        local_g = np.asarray(a["gradient"], np.float64).reshape(len(near), 3)
-                        # rotated into the site frame; a gradient with a NaN in it has no direction (all NaN)
-                        g[near] = np.where(np.isfinite(local_g).all(1, keepdims=True),
-                                           local_g @ site_from_world[:3, :3].T, np.nan)
-                except (TimeoutError, RemoteError, OSError, ValueError, KeyError) as err:
-                    missing[mid] = f"{type(err).__name__}: {err}"[:200]
-                    continue
-                answers.append((d, s, g))
-                maps.append(mid)
-    sdf, state, grad, source = merge_distances(answers, len(pts))
+        jobs[pl.map_id] = (near, local[near], pl.site_from_world)
+
+    def read(mid: str, data: bytes):
+        near, _, site_from_world = jobs[mid]
+        a = read_npz(data)
+        d = np.full(len(pts), np.nan, np.float32)
+        s = np.full(len(pts), UNKNOWN, np.uint8)
+        d[near], s[near] = a["sdf"], a["state"]  # a reply of another length: ValueError, that map's error
+        g = None
+        if gradient:
+            g = np.zeros((len(pts), 3), np.float32)
+            local_g = np.asarray(a["gradient"], np.float64).reshape(len(near), 3)
+            # rotated into the site frame; a gradient with a NaN in it has no direction (all NaN)
+            g[near] = np.where(np.isfinite(local_g).all(1, keepdims=True), local_g @ site_from_world[:3, :3].T,
+                               np.nan)
+        return d, s, g
+
+    asks = {mid: (Keys.for_map(mid).sdf, np.ascontiguousarray(local, "<f4").tobytes(),
+                  "gradient=true" if gradient else "") for mid, (_, local, _) in jobs.items()}
+    got = _ask_all(session, asks, deadline, read, missing)
+    maps = [mid for mid in jobs if mid in got]
+    sdf, state, grad, source = merge_distances([got[m] for m in maps], len(pts))
     return FleetDistance(sdf, state, grad if gradient else None, source, maps, missing, skipped)
+
+
+@dataclass
+class FleetSlice:
+    """An occupancy / distance slice in the site frame merged over the maps of a fleet."""
+
+    slice: DistanceSlice
+    """occupancy and distance images (row 0 the lowest site y), as one map's slice"""
+    source: np.ndarray
+    """(H, W) int: index into ``maps`` of the map whose distance each cell took (-1: none)"""
+    maps: list[str] = field(default_factory=list)
+    """the maps that answered"""
+    missing: dict[str, str] = field(default_factory=dict)
+    """map id -> why it gave no answer"""
+    skipped: list[str] = field(default_factory=list)
+    """maps the slice does not come near (not asked)"""
+
+
+def fleet_slice(session: zenoh.Session, z: float, lo: tuple[float, float], hi: tuple[float, float],
+                resolution: float = 0.05, timeout: float = 2.0, max_cells: int = 1_000_000,
+                entries: list[dict] | None = None) -> FleetSlice:
+    """Occupancy and distance at site height ``z`` (m) over ``lo`` = (xmin, ymin) .. ``hi`` = (xmax,
+    ymax) site metres, ``resolution`` metres a cell, merged over the fleet: the signed distance of
+    every map at the cell centres (:func:`fleet_sdf`, each map's answer in its own frame, whatever its
+    axes), merged cell by cell into the nearest known surface, then occupancy and the in-plane
+    distance transform as one map's slice makes them (:func:`slice_from_sample`). ValueError on a box
+    or resolution that is not finite and positive, or more than ``max_cells`` cells."""
+    lo, hi = (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
+    if not (np.isfinite([z, *lo, *hi, resolution]).all() and resolution > 0 and lo[0] < hi[0] and lo[1] < hi[1]):
+        raise ValueError("fleet slice needs a finite z, lo < hi and a positive resolution")
+    with np.errstate(over="ignore"):
+        cells = float(np.ceil((hi[0] - lo[0]) / resolution)) * float(np.ceil((hi[1] - lo[1]) / resolution))
+    if not cells <= max_cells:
+        raise ValueError(f"a fleet slice of {cells:.4g} cells exceeds {max_cells}: a coarser resolution or a smaller "
+                         "area")
+    pts, shape = slice_grid(float(z), lo, hi, float(resolution))
+    d = fleet_sdf(session, pts, timeout, entries=entries)
+    merged = slice_from_sample(d.sdf, d.state, shape, float(z), lo, float(resolution))
+    return FleetSlice(merged, d.source.reshape(shape), d.maps, d.missing, d.skipped)
+
+
+@dataclass
+class FleetRender:
+    """The fleet's maps seen from one site-frame camera, composited by depth."""
+
+    color: np.ndarray
+    """(H, W, 3) uint8 RGB"""
+    depth: np.ndarray
+    """(H, W) float32 z-depth metres (0: no map saw anything there)"""
+    source: np.ndarray
+    """(H, W) int: index into ``maps`` of the map each pixel came from (-1: none)"""
+    maps: list[str] = field(default_factory=list)
+    """the maps that answered"""
+    missing: dict[str, str] = field(default_factory=dict)
+    """map id -> why it gave no answer"""
+    skipped: list[str] = field(default_factory=list)
+    """maps wholly behind the camera (not asked)"""
+
+
+def fleet_render(session: zenoh.Session, c2w, width: int = 320, height: int = 240,
+                 intrinsics: Intrinsics | None = None, fov_deg: float = 80.0, timeout: float = 5.0,
+                 entries: list[dict] | None = None) -> FleetRender:
+    """The fleet seen from camera-to-site ``c2w`` (4, 4, OpenCV optical axes): each map with voxels in
+    front of the camera renders from the same camera in its own frame (``intrinsics``, or ``fov_deg``
+    over ``width`` x ``height``), all at once within ``timeout`` seconds; per pixel the nearest
+    surface wins (z-depth is the camera's, the same in every map's frame)."""
+    c2w = np.asarray(c2w, np.float64).reshape(4, 4)
+    err = rigid_error(c2w)
+    if err or not np.isfinite(c2w).all():
+        raise ValueError(f"fleet render pose is not a rigid transform ({err or 'not finite'})")
+    deadline, places, missing = _start(session, timeout, entries)
+    h, w = (intrinsics.height, intrinsics.width) if intrinsics is not None else (int(height), int(width))
+    w2c = invert_pose(c2w)
+    asks, skipped = {}, []
+    for pl in places:
+        corners = pl.site_box_corners() @ w2c[:3, :3].T + w2c[:3, 3] if pl.box is not None else None
+        if corners is None or (corners[:, 2] <= 0).all():  # no voxel, or every voxel behind the camera
+            skipped.append(pl.map_id)
+            continue
+        asks[pl.map_id] = (Keys.for_map(pl.map_id).render,
+                           render_request(pl.world_from_site @ c2w, w, h, intrinsics, fov_deg), "")
+
+    def read(mid: str, data: bytes):
+        msg = decode_frame(data)
+        if msg.depth.shape != (h, w) or msg.color.shape != (h, w, 3):
+            raise ValueError(f"render of {msg.depth.shape} pixels, not {(h, w)}")
+        return msg.color, msg.depth
+
+    got = _ask_all(session, asks, deadline, read, missing)
+    color, depth = np.zeros((h, w, 3), np.uint8), np.zeros((h, w), np.float32)
+    source = np.full((h, w), -1, np.int64)
+    maps = [mid for mid in asks if mid in got]
+    for i, mid in enumerate(maps):
+        c, d = got[mid]
+        take = (d > 0) & np.isfinite(d) & ((source < 0) | (d < depth))
+        color[take], depth[take], source[take] = c[take], d[take], i
+    return FleetRender(color, depth, source, maps, missing, skipped)
+
+
+@dataclass
+class FleetMesh:
+    """The fleet's meshes in the site frame, one per map (trimesh.Trimesh, metres, vertex colours)."""
+
+    meshes: dict = field(default_factory=dict)
+    """map id -> its mesh in the site frame"""
+    missing: dict[str, str] = field(default_factory=dict)
+    """map id -> why it gave no answer"""
+    skipped: list[str] = field(default_factory=list)
+    """maps with no voxel in the box asked for (not asked)"""
+
+    @property
+    def maps(self) -> list[str]:
+        """the maps that answered"""
+        return list(self.meshes)
+
+    def export(self, format: str = "ply") -> bytes:
+        """One file's bytes: ``glb``, a scene with one node per map (named by its id); ``ply`` or
+        ``obj``, the maps' meshes concatenated."""
+        import trimesh
+
+        if format == "glb":
+            scene = trimesh.Scene()
+            for mid, mesh in self.meshes.items():
+                scene.add_geometry(mesh, node_name=mid, geom_name=mid)
+            return scene.export(file_type="glb")
+        meshes = list(self.meshes.values())
+        whole = trimesh.util.concatenate(meshes) if meshes else trimesh.Trimesh()
+        return whole.export(file_type=format)
+
+
+def fleet_mesh(session: zenoh.Session, resolution: int | None = None, aabb=None, timeout: float = 30.0,
+               entries: list[dict] | None = None) -> FleetMesh:
+    """Every map's mesh (each service's ``mesh`` query, ``resolution`` cells per voxel edge) moved into
+    the site frame, all asked at once within ``timeout`` seconds. ``aabb`` (2, 3) site metres: only
+    the maps whose voxels meet it, each asked for the box in its own frame that holds it (so a map
+    turned against the site may give a little more than the box)."""
+    import trimesh
+
+    box = None
+    if aabb is not None:
+        box = np.asarray(aabb, np.float64).reshape(2, 3)
+        if not np.isfinite(box).all() or np.any(box[0] >= box[1]):
+            raise ValueError("fleet mesh aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
+    deadline, places, missing = _start(session, timeout, entries)
+    asks, skipped = {}, []
+    for pl in places:
+        payload: dict = {"format": "ply"}
+        if resolution is not None:
+            payload["resolution"] = int(resolution)
+        if box is not None and pl.box is not None:
+            corners = pl.to_local(np.array([[box[i, 0], box[j, 1], box[k, 2]]
+                                            for i in (0, 1) for j in (0, 1) for k in (0, 1)]))
+            local = np.stack([np.maximum(corners.min(0), pl.box[0]), np.minimum(corners.max(0), pl.box[1])])
+            if np.any(local[0] >= local[1]):
+                skipped.append(pl.map_id)
+                continue
+            payload["aabb"] = local.tolist()
+        if pl.box is None:
+            skipped.append(pl.map_id)
+            continue
+        asks[pl.map_id] = (Keys.for_map(pl.map_id).mesh, payload, "")
+    site = {pl.map_id: pl.site_from_world for pl in places}
+
+    def read(mid: str, data: bytes):
+        mesh = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise ValueError(f"mesh reply is a {type(mesh).__name__}, not a triangle mesh")
+        return mesh.apply_transform(site[mid])
+
+    got = _ask_all(session, asks, deadline, read, missing)
+    return FleetMesh({mid: got[mid] for mid in asks if mid in got}, missing, skipped)
+
+
+class Fleet:
+    """Every h3edge service on a zenoh network, asked as one map in the site frame the fleet shares.
+
+    Usage::
+
+        from h3edge import Fleet
+
+        with Fleet(connect=["tcp/site-router:7447"], mode="client") as fleet:
+            fleet.status()                                      # one entry per map
+            d = fleet.signed_distance(points)                   # FleetDistance, site frame
+            s = fleet.slice(0.4, (-10, -10), (10, 10), 0.05)    # FleetSlice
+            r = fleet.render(c2w, 640, 480)                     # FleetRender: composited by depth
+            open("site.glb", "wb").write(fleet.mesh().export("glb"))
+
+    Points, poses and boxes are in the site frame (metres; poses camera-to-site, OpenCV optical
+    axes); each map is asked in its own frame (its status's ``site_from_world``). Every answer names
+    the maps that gave it (``maps``), those with no answer by the deadline (``missing``: they are
+    never waited for past ``timeout`` seconds) and those the request does not come near
+    (``skipped``)."""
+
+    def __init__(self, config: str | zenoh.Config | None = None, *, connect: list[str] | None = None,
+                 mode: str | None = None, multicast: bool | None = None, timeout: float = 5.0,
+                 session: zenoh.Session | None = None):
+        """``config``: a zenoh JSON5 file or a ``zenoh.Config`` (default zenoh's: peer, multicast
+        scouting); ``connect`` / ``mode`` / ``multicast`` override it. ``timeout``: seconds a fan-out
+        may take in all, the status query included (a mesh: at least 30). ``session``: an open
+        session to use instead (not closed by the fleet)."""
+        self.timeout = timeout
+        self._owned = session is None
+        self.session = session if session is not None else open_client_session(config, connect, mode, multicast)
+
+    def close(self) -> None:
+        """Close the zenoh session (when the fleet opened it)."""
+        if self._owned:
+            self.session.close()
+            self._owned = False
+
+    def __enter__(self) -> Fleet:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def status(self) -> list[dict]:
+        """Every map that answers: ``{"map_id", "status"}`` (its status document), sorted by id."""
+        return fleet_status(self.session, self.timeout)
+
+    def signed_distance(self, points, gradient: bool = False) -> FleetDistance:
+        """Signed distance at site points (N, 3) metres: the nearest surface any map knows
+        (:func:`fleet_sdf`); ``.gradient`` (N, 3) in the site frame when asked."""
+        return fleet_sdf(self.session, points, self.timeout, gradient)
+
+    def slice(self, z: float, lo, hi, resolution: float = 0.05) -> FleetSlice:
+        """Occupancy and distance at site height ``z`` over ``lo`` = (xmin, ymin) .. ``hi`` = (xmax,
+        ymax) metres, ``resolution`` m a cell (:func:`fleet_slice`)."""
+        return fleet_slice(self.session, z, lo, hi, resolution, self.timeout)
+
+    def render(self, c2w, width: int = 320, height: int = 240, intrinsics: Intrinsics | None = None,
+               fov_deg: float = 80.0) -> FleetRender:
+        """The fleet seen from camera-to-site ``c2w`` (4, 4): colour uint8 (H, W, 3), z-depth float32
+        (H, W) metres (0: nothing), composited by depth (:func:`fleet_render`)."""
+        return fleet_render(self.session, c2w, width, height, intrinsics, fov_deg, self.timeout)
+
+    def mesh(self, resolution: int | None = None, aabb=None) -> FleetMesh:
+        """Every map's mesh in the site frame (:func:`fleet_mesh`); ``.export("glb" | "ply" | "obj")``."""
+        return fleet_mesh(self.session, resolution, aabb, max(self.timeout, 30.0))

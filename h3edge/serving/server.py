@@ -46,6 +46,7 @@ class ZenohServer:
         self._workers: list[threading.Thread] = []
         self._closing = threading.Event()
         self.live = None
+        self.checkpoint_publisher = None
 
     def start(self) -> None:
         s, k = self.service, self.keys
@@ -78,6 +79,11 @@ class ZenohServer:
             self.live = LivePublisher(s, self.session, k, cfg.live_interval_s, cfg.live_block_voxels,
                                       cfg.live_max_blocks, cfg.live_frame_width, cfg.live_refresh_s)
             self.live.start()
+        if cfg.fleet_checkpoints:
+            from h3edge.serving.keeping import CheckpointPublisher
+
+            self.checkpoint_publisher = CheckpointPublisher(self.session, cfg.map_id, lambda: s.checkpoints.last)
+            self.checkpoint_publisher.start()
         log.info("serving map under %s/**", k.base)
 
     def _enqueue(self, q: queue.Queue, fn: Callable) -> Callable:
@@ -190,6 +196,8 @@ class ZenohServer:
         self._closing.set()
         if self.live is not None:
             self.live.close()
+        if self.checkpoint_publisher is not None:
+            self.checkpoint_publisher.close()
         for e in self._entities:
             try:
                 e.undeclare()

@@ -77,6 +77,9 @@ class ServiceConfig:
     """where this map's world frame lies in the site frame a fleet shares, "x y z qx qy qz qw" (metres; the world
     frame's origin and orientation in the site frame) or "" (the world frame is the site frame): fleet queries
     (:mod:`h3edge.serving.fleet`) transform their site-frame points into this map with it"""
+    fleet_checkpoints: bool = False
+    """publish every checkpoint written on h3edge/<map_id>/checkpoint (1 MiB chunks, then a manifest) for a fleet
+    keeper on another host (h3edge fleet keep, or a zenoh storage) to keep; serve --resume-from-fleet fetches it back"""
     state_dir: str = "/var/lib/h3edge"
     """checkpoints (systemd's StateDirectory)"""
     checkpoint_interval_s: float = 60.0

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -11,6 +12,24 @@ import numpy as np
 import zenoh
 
 from h3edge.io.protocol import Keys
+
+
+class SubSequence:
+    """Frames ``idx`` of ``seq`` as a sequence of their own (what one robot of a fleet streams), their
+    poses moved into another world frame by ``world_from_seq`` (4, 4; default: the same frame)."""
+
+    def __init__(self, seq, idx, world_from_seq: np.ndarray | None = None):
+        self.seq, self.idx = seq, [int(i) for i in idx]
+        self.intrinsics = seq.intrinsics
+        self.world_from_seq = np.eye(4) if world_from_seq is None else np.asarray(world_from_seq, np.float64)
+        self.poses = self.world_from_seq @ np.asarray(seq.poses)[self.idx]
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, k: int):
+        f = self.seq[self.idx[k]]
+        return dataclasses.replace(f, pose=self.world_from_seq @ f.pose)
 
 
 def publish_sequence(session: zenoh.Session, seq, keys: Keys, rate: float = 30.0, pose_rate: float | None = None,
