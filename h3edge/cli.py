@@ -517,6 +517,22 @@ def _camera_pose(args: argparse.Namespace):
         return look_at(np.array(v[:3]), np.array(v[3:]))
     raise SystemExit("error: render needs --pose or --look-at")
 
+def _cmd_deploy_site(args: argparse.Namespace) -> int:
+    from h3edge.apps.site import Site, write_site
+
+    def names(text: str) -> list[str]:
+        return [n.strip() for n in text.split(",") if n.strip()]
+
+    try:
+        site = Site(names(args.robots), names(args.clients), names(args.operators), names(args.keepers), args.certs,
+                    args.router, args.listen)
+        written = write_site(site, Path(args.out))
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from None
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
 def _cmd_deploy_plan(args: argparse.Namespace) -> int:
     from h3edge.deploy import format_plan, plan
 
@@ -683,6 +699,17 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--meminfo", default="/proc/meminfo")
     pl.add_argument("--runtime-mb", type=float, help="the runtime's fixed cost (default: measured here)")
     pl.set_defaults(func=_cmd_deploy_plan)
+    st = dp.add_parser("site", help="zenoh configs for a site: a router with TLS and per-robot access rules, and "
+                       "one config per robot / client / operator / keeper (deploy/site/README.md)")
+    st.add_argument("--robots", required=True, help="comma-separated map ids (each robot's certificate CN)")
+    st.add_argument("--clients", default="", help="comma-separated certificate CNs that read every map")
+    st.add_argument("--operators", default="", help="... that also save, load and export")
+    st.add_argument("--keepers", default="", help="... that run h3edge fleet keep")
+    st.add_argument("--certs", default="/etc/h3edge/tls", help="where each host keeps ca.pem, <cn>.pem, <cn>-key.pem")
+    st.add_argument("--router", default="tls/site-router.local:7447", help="the router's endpoint for the others")
+    st.add_argument("--listen", default="tls/0.0.0.0:7447", help="the router's listening endpoint")
+    st.add_argument("--out", required=True, help="folder for router.json5 and <cn>.json5")
+    st.set_defaults(func=_cmd_deploy_site)
 
     q = sub.add_parser("query", help="ask a running service for status, profile, mesh, render or a checkpoint")
     q.add_argument("what", choices=["status", "profile", "mesh", "render", "sdf", "slice", "save", "load", "export"])

@@ -28,12 +28,12 @@ def _openssl(*args: str, cwd: Path) -> None:
     subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
 
 
-def make_certificates(d: Path) -> None:
+def make_certificates(d: Path, names: tuple[str, ...] = NAMES) -> None:
     """A private CA and one certificate per name (CN = the name; SAN localhost / 127.0.0.1)."""
     _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "2",
              "-subj", "/CN=h3edge-test-ca", "-addext", "basicConstraints=critical,CA:TRUE",
              "-addext", "keyUsage=critical,keyCertSign,cRLSign", cwd=d)
-    for name in NAMES:
+    for name in names:
         _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}-key.pem", "-out", f"{name}.csr",
                  "-subj", f"/CN={name}", cwd=d)
         (d / f"{name}.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
@@ -165,3 +165,105 @@ def test_tls_acl_roles(acl_service):
             qable.undeclare()
         assert all("frames" in r and "fake" not in r for r in replies)
         assert hits == []
+
+
+def test_site_router_lets_each_robot_write_and_answer_only_as_itself(tmp_path, tiny_scene):
+    """`h3edge deploy site` configs: `h3edge router` with TLS and per-robot rules, robot-a's real service
+    connected as a client with robot-a's certificate. The planner lists robot-a; robot-b (listed, its own
+    certificate) cannot answer under robot-a's key, and its answer under its own key claiming robot-a is
+    not listed as robot-a; robot-a's checkpoints reach the keeper and come back to robot-a, while robot-b
+    can neither put a checkpoint under robot-a's key nor fetch robot-a's; the planner cannot save, an
+    operator can; an unlisted certificate sees no map."""
+    import zenoh
+
+    from h3edge.apps.site import Site, host_config, write_site
+    from h3edge.io.protocol import Keys
+    from h3edge.io.zenoh_session import open_session
+    from h3edge.serving.client import RemoteError, query
+    from h3edge.serving.fleet import fleet_status
+    from h3edge.serving.keeping import CheckpointKeeper, fetch_checkpoint, publish_checkpoint
+    from h3edge.sim.publish import publish_sequence
+
+    names = ("site-router", "robot-a", "robot-b", "planner", "operator", "keeper", "intruder")
+    make_certificates(tmp_path, names)
+    port = free_port()
+    site = Site(["robot-a", "robot-b"], ["planner"], ["operator"], ["keeper"], str(tmp_path), f"tls/localhost:{port}",
+                f"tls/127.0.0.1:{port}")
+    write_site(site, tmp_path / "site")
+    (tmp_path / "site" / "intruder.json5").write_text(json.dumps(host_config(site, "intruder")))
+
+    def conf(name: str):
+        return zenoh.Config.from_file(str(tmp_path / "site" / f"{name}.json5"))
+
+    logs = open(tmp_path / "procs.log", "ab")
+    procs = [subprocess.Popen([sys.executable, "-m", "h3edge", "router", "--zenoh-config",
+                               str(tmp_path / "site" / "router.json5")], stdout=logs, stderr=subprocess.STDOUT)]
+    try:
+        end = time.monotonic() + 60
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+                break
+            except OSError:
+                assert time.monotonic() < end and procs[0].poll() is None, "the router did not listen"
+                time.sleep(0.2)
+        procs.append(subprocess.Popen([sys.executable, "-m", "h3edge", "serve", "--profile",
+                                       str(ROOT / "tests" / "data" / "service-test.toml"), "--map-id", "robot-a",
+                                       "--state-dir", str(tmp_path / "state"), "--fleet-checkpoints", "--zenoh-config",
+                                       str(tmp_path / "site" / "robot-a.json5")],
+                                      stdout=logs, stderr=subprocess.STDOUT))
+        keys = Keys.for_map("robot-a")
+        with open_session(conf("robot-a")) as robot_a, open_session(conf("robot-b")) as robot_b, \
+                open_session(conf("planner")) as planner, open_session(conf("operator")) as operator, \
+                open_session(conf("keeper")) as keeper_session, open_session(conf("intruder")) as intruder:
+            keeper = CheckpointKeeper(keeper_session, tmp_path / "kept")
+            keeper.start()
+            end = time.monotonic() + 120
+            while not any(e["map_id"] == "robot-a" for e in fleet_status(planner, 2.0)):
+                assert time.monotonic() < end and procs[1].poll() is None, (tmp_path / "procs.log").read_text()[-3000:]
+            # robot-b: an answer under robot-a's key (denied at the router), one under its own claiming robot-a
+            fake = {"map_id": "robot-a", "frames": {"mapped": 999}}
+            qs = [robot_b.declare_queryable(keys.status, lambda q: q.reply(keys.status, json.dumps(fake).encode())),
+                  robot_b.declare_queryable("h3edge/robot-b/status",
+                                            lambda q: q.reply("h3edge/robot-b/status", json.dumps(fake).encode()))]
+            time.sleep(1.0)
+            entries = fleet_status(planner, 3.0)
+            real = [e for e in entries if e["map_id"] == "robot-a"]
+            assert len(real) == 1 and real[0]["status"]["frames"]["mapped"] != 999, entries
+            assert any(e["map_id"] == "? (robot-b)" and "error" in e for e in entries), entries
+            for _ in range(5):
+                assert json.loads(query(planner, keys.status, timeout=5.0))["frames"]["mapped"] != 999
+            for q in qs:
+                q.undeclare()
+            # robot-a maps and an operator saves: the checkpoint reaches the keeper
+            publish_sequence(robot_a, ReplicaSequence(tiny_scene), keys, rate=8.0, frames=4, embed_pose=True)
+            wait_drained(planner, keys, timeout=120)
+            with pytest.raises(TimeoutError, match="access-control"):  # a client may not save
+                query(planner, keys.save, timeout=10.0)
+            json.loads(query(operator, keys.save, timeout=60.0))
+            end = time.monotonic() + 60
+            while "robot-a" not in keeper.kept:
+                assert time.monotonic() < end, "the keeper did not get robot-a's checkpoint"
+                time.sleep(0.3)
+            kept = dict(keeper.kept["robot-a"])
+            # robot-b can neither put a checkpoint under robot-a's key nor read robot-a's
+            ckpt = tmp_path / "state" / "robot-a" / "map.h3ckpt"
+            publish_checkpoint(robot_b, "robot-a", ckpt)
+            publish_checkpoint(robot_b, "robot-b", ckpt)  # its own key, robot-a's map: refused by the keeper
+            time.sleep(2.0)
+            assert keeper.kept["robot-a"] == kept and "robot-b" not in keeper.kept
+            with pytest.raises((TimeoutError, RemoteError)):
+                fetch_checkpoint(robot_b, "robot-a", tmp_path / "stolen.h3ckpt", timeout=5.0)
+            got = fetch_checkpoint(robot_a, "robot-a", tmp_path / "back" / "map.h3ckpt", timeout=20.0)
+            assert got["sha256"] == kept["sha256"]
+            # an unlisted certificate sees no map
+            assert fleet_status(intruder, 2.0) == []
+            keeper.close()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            try:
+                p.wait(60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        logs.close()

@@ -42,19 +42,28 @@ FLEET_STATUS_KEY = "h3edge/*/status"
 def fleet_status(session: zenoh.Session, timeout: float = 2.0) -> list[dict]:
     """The status of every service that answers within ``timeout`` seconds, one entry per map
     sorted by map id: ``{"map_id", "status"}`` (the service's status document), or ``{"map_id",
-    "error"}`` for a reply that is not a status document (error replies are left out)."""
+    "error"}`` for a reply that is not a status document, or one whose map id is not that of the key it
+    came on (error replies are left out)."""
     entries: list[dict] = []
     replies = session.get(FLEET_STATUS_KEY, target=zenoh.QueryTarget.ALL,
                           consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
     for reply in replies:
         if reply.ok is None:
             continue  # an error reply names no map: nothing to list it under
-        # a service answers on the query's key (the wildcard): its map id is in its status
+        # a service answers on its own key, h3edge/<map-id>/status, and names its map in the document
+        key = str(reply.ok.key_expr).split("/")
+        keyed = key[1] if len(key) == 3 and key[0] == "h3edge" and key[2] == "status" and key[1] != "*" else None
         try:
             status = json.loads(reply.ok.payload.to_bytes())
-            entries.append({"map_id": str(status["map_id"]), "status": status})
+            named = str(status["map_id"])
         except (ValueError, KeyError, TypeError) as e:
-            entries.append({"map_id": f"? ({reply.ok.key_expr})", "error": f"not a status document: {e!r}"[:200]})
+            entries.append({"map_id": f"? ({keyed or reply.ok.key_expr})",
+                            "error": f"not a status document: {e!r}"[:200]})
+            continue
+        if keyed is not None and keyed != named:  # an answer under one map's key for another map: not listed as it
+            entries.append({"map_id": f"? ({keyed})", "error": f"answered on {keyed}'s key for map {named[:64]!r}"})
+            continue
+        entries.append({"map_id": named, "status": status})
     return sorted(entries, key=lambda e: e["map_id"])
 
 

@@ -66,8 +66,8 @@ class ZenohServer:
                     "save": (self._heavy, self._save), "load": (self._heavy, self._load),
                     "export": (self._heavy, self._export)}
         for name, (q, fn) in handlers.items():
-            self._entities.append(self.session.declare_queryable(getattr(k, name), self._enqueue(q, fn),
-                                                                 complete=True))
+            key = getattr(k, name)
+            self._entities.append(self.session.declare_queryable(key, self._enqueue(q, fn, key), complete=True))
         for name, q in (("fast", self._fast), ("heavy", self._heavy)):
             t = threading.Thread(target=self._work, args=(q,), name=f"h3edge-query-{name}", daemon=True)
             t.start()
@@ -86,10 +86,13 @@ class ZenohServer:
             self.checkpoint_publisher.start()
         log.info("serving map under %s/**", k.base)
 
-    def _enqueue(self, q: queue.Queue, fn: Callable) -> Callable:
+    def _enqueue(self, q: queue.Queue, fn: Callable, key: str) -> Callable:
+        """The queryable's callback: queue the query for ``fn``; it is answered on ``key``, this map's own
+        key, also when it came on a wildcard (``h3edge/*/status``): who answered is in the reply's key,
+        and a site router's access rules can allow each robot to reply only under its own map id."""
         def cb(query) -> None:
             try:
-                q.put_nowait((query, fn, time.monotonic()))
+                q.put_nowait((query, fn, time.monotonic(), key))
             except queue.Full:  # refused with an error reply saying so, never an empty answer
                 log.warning("query queue full: refused a query on %s", query.key_expr)
                 with query:
@@ -100,7 +103,7 @@ class ZenohServer:
     def _work(self, q: queue.Queue) -> None:
         while not self._closing.is_set():
             try:
-                query, fn, queued_at = q.get(timeout=0.2)
+                query, fn, queued_at, key = q.get(timeout=0.2)
             except queue.Empty:
                 continue
             with query:
@@ -112,7 +115,7 @@ class ZenohServer:
                     continue
                 try:
                     payload, encoding = fn(query)
-                    query.reply(query.key_expr, payload, encoding=encoding)
+                    query.reply(key, payload, encoding=encoding)
                 except InputError as e:  # a query refused, by the parser (QueryError) or the library
                     query.reply_err(str(e))
                 except Exception as e:  # noqa: BLE001 - any failure becomes an error reply
