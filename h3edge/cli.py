@@ -221,8 +221,13 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if not (args.save or args.rerun_url or args.spawn):
         raise SystemExit("error: view needs --save FILE.rrd, --rerun-url URL or --spawn")
     with open_session(_zenoh_conf(args)) as session:
-        counts = run_viewer(session, args.map_id or "default", args.save, args.spawn, args.rerun_url,
-                            args.duration, args.render_every)
+        if args.fleet:
+            from h3edge.apps.viewer import run_fleet_viewer
+
+            counts = run_fleet_viewer(session, args.save, args.spawn, args.rerun_url, args.duration, args.render_every)
+        else:
+            counts = run_viewer(session, args.map_id or "default", args.save, args.spawn, args.rerun_url,
+                                args.duration, args.render_every)
     print(json.dumps(counts))
     return 0
 
@@ -651,6 +656,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     vw = sub.add_parser("view", help="stream a running service's live map into Rerun (mesh, poses, frames, timings)")
+    vw.add_argument("--fleet", action="store_true", help="every map on the network in one recording, each placed "
+                    "in the site frame (entities site/<map-id>/...)")
     vw.add_argument("--save", help="write the recording to this .rrd file (headless)")
     vw.add_argument("--spawn", action="store_true", help="start a Rerun viewer on this machine")
     vw.add_argument("--rerun-url", dest="rerun_url", help="a Rerun server, e.g. rerun+http://127.0.0.1:9876/proxy")

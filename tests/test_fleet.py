@@ -226,6 +226,12 @@ def test_fleet_behind_a_router_answers_as_one_map_and_keeps_checkpoints(tiny_sce
             streams.append((wsession, seq, "whole"))
             publishers = [threading.Thread(target=publish_sequence, args=(ses, sub, Keys.for_map(mid)),
                                            kwargs={"rate": 4.0, "embed_pose": True}) for ses, sub, mid in streams]
+            from h3edge.apps.viewer import run_fleet_viewer
+
+            stop_view, views = threading.Event(), {}
+            viewer = threading.Thread(target=lambda: views.update(run_fleet_viewer(
+                session, save=str(tmp_path / "site.rrd"), stop=stop_view, scan_every_s=2.0)))
+            viewer.start()
             for t in publishers:
                 t.start()
             for t in publishers:
@@ -236,6 +242,15 @@ def test_fleet_behind_a_router_answers_as_one_map_and_keeps_checkpoints(tiny_sce
             time.sleep(2.5)  # a fresh query snapshot of every map
             entries = fleet.status()
             assert [e["map_id"] for e in entries] == ids
+            stop_view.set()  # `h3edge view --fleet`: every map in one recording, each placed in the site frame
+            viewer.join(60)
+            assert sorted(views) == ids and all(v["frames"] >= 1 and v["meshes"] >= 1 for v in views.values()), views
+            from rerun.chunk import RrdReader
+
+            summary = RrdReader(str(tmp_path / "site.rrd")).store().summary()
+            for mid in ids:
+                for entity in ("mesh/", "trajectory", "camera/image"):
+                    assert f"/site/{mid}/{entity}" in summary, (mid, entity, summary)
             cli = subprocess.run([sys.executable, "-m", "h3edge", "fleet", "status", "--mode", "client", "--connect",
                                   router_ep, "--no-multicast"], capture_output=True, text=True, timeout=120)
             assert cli.returncode == 0 and all(f"| {m} | world | " in cli.stdout for m in ids), cli.stderr
