@@ -107,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
               "rss_before_mb": before[0], "peak_before_mb": before[1], "rss_after_mb": after[0],
               "peak_after_mb": after[1], "rss_end_mb": end[0], "peak_end_mb": end[1],
               "mapped_before": first["map"]["frames_mapped"], "mapped_end": last["map"]["frames_mapped"],
-              "dropped_by_flood": {k: v for k, v in mid["dropped"].items() if k.startswith("ros_")},
+              "dropped_by_flood": {k: v - first["ros"]["dropped"].get(k, 0) for k, v in mid["ros"]["dropped"].items()
+                                   if v != first["ros"]["dropped"].get(k, 0)},
               "dropped_end": last["dropped"], "frames": args.frames}
     table = _table(result)
     print(table)
