@@ -439,6 +439,13 @@ def _cmd_fleet(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         if args.what == "status":
             entries = fl.fleet_status(session, args.timeout)
+            while args.wait and sum("status" in e for e in entries) < args.wait:
+                if time.perf_counter() - t0 > args.wait_timeout:
+                    print(f"error: {sum('status' in e for e in entries)} of {args.wait} maps answered within "
+                          f"{args.wait_timeout:.0f} s", file=sys.stderr)
+                    return 1
+                time.sleep(0.5)
+                entries = fl.fleet_status(session, args.timeout)
             seconds = time.perf_counter() - t0
             print(json.dumps(entries, indent=1) if args.json else fl.format_fleet(entries, seconds))
             return 0 if entries else 1
@@ -759,6 +766,8 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--dir", help="keep: where the checkpoints are kept (<dir>/<map-id>/map.h3ckpt)")
     fl.add_argument("--max-mb", type=float, default=1024.0, help="keep: largest checkpoint kept (MB)")
     fl.add_argument("--json", action="store_true", help="status: print the status documents as JSON")
+    fl.add_argument("--wait", type=int, default=0, help="status: until this many maps answer (services starting)")
+    fl.add_argument("--wait-timeout", type=float, default=120.0, help="status --wait: give up after this many s")
     _add_zenoh_args(fl)
     fl.set_defaults(func=_cmd_fleet)
 
