@@ -19,8 +19,9 @@ PROFILE = Path(__file__).parent / "data" / "service-test.toml"
 
 
 def test_merged_distance_is_the_nearest_surface_any_map_knows():
-    """merge_distances: per point the least signed distance among the maps that know it, its state
-    and map; inside wins over a nearer-looking free answer; unknown where no map knows."""
+    """merge_distances: per point the nearest surface the maps know, its state and map: inside wins;
+    near answers of one surface (within SAME_SURFACE_M of the least) are averaged, a surface farther
+    behind is not; free only where no map sees a surface; unknown where no map knows."""
     from h3edge.io.distance_types import FREE, INSIDE, NEAR, UNKNOWN
     from h3edge.serving.fleet import merge_distances
 
@@ -30,9 +31,13 @@ def test_merged_distance_is_the_nearest_surface_any_map_knows():
     b = (np.array([0.05, 0.04, 0.07, -0.03, nan], np.float32), np.array([NEAR, NEAR, NEAR, INSIDE, UNKNOWN], np.uint8),
          np.tile(np.array([0, 1.0, 0], np.float32), (5, 1)))
     sdf, state, grad, source = merge_distances([a, b], 5)
-    assert np.allclose(sdf[:4], [0.05, 0.02, 0.07, -0.03]) and np.isnan(sdf[4])
+    assert np.allclose(sdf[:4], [0.05, 0.03, 0.07, -0.03]) and np.isnan(sdf[4])  # 0.02 and 0.04: one surface
     assert state.tolist() == [NEAR, NEAR, NEAR, INSIDE, UNKNOWN] and source.tolist() == [1, 0, 1, 1, -1]
-    assert np.allclose(grad[0], [0, 1, 0]) and np.allclose(grad[1], [1, 0, 0]) and np.isnan(grad[4]).all()
+    assert np.allclose(grad[0], [0, 1, 0]) and np.allclose(grad[1], [0.5, 0.5, 0]) and np.isnan(grad[4]).all()
+    far = (np.array([0.09], np.float32), np.array([NEAR], np.uint8), None)  # another surface 8 cm behind
+    sdf, state, grad, source = merge_distances([(np.array([0.01], np.float32), np.array([NEAR], np.uint8), None),
+                                                far], 1)
+    assert np.allclose(sdf, [0.01]) and source.tolist() == [0] and grad is None
     sdf, state, grad, source = merge_distances([], 3)
     assert np.isnan(sdf).all() and (state == UNKNOWN).all() and grad is None and (source == -1).all()
     from h3edge.serving.fleet import fleet_sdf

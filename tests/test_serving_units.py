@@ -469,7 +469,7 @@ def test_overloaded_queries_get_a_busy_error_reply():
             self.closed = True
 
     server = ZenohServer(service=None, session=None, map_id="m")
-    cb = server._enqueue(server._heavy, lambda q: (b"", None))
+    cb = server._enqueue(server._heavy, lambda q: (b"", None), "h3edge/m/render")
     queries = [FakeQuery() for _ in range(server._heavy.maxsize + 3)]
     for q in queries:
         cb(q)
@@ -506,8 +506,8 @@ def test_heavy_queries_past_their_deadline_get_an_error_reply():
     server = ZenohServer(service=None, session=None, map_id="m", heavy_deadline_s=0.2)
     calls = []
     late, fresh = FakeQuery(), FakeQuery()
-    server._heavy.put((late, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic() - 1.0))
-    server._heavy.put((fresh, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic()))
+    server._heavy.put((late, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic() - 1.0, "h3edge/m/mesh"))
+    server._heavy.put((fresh, lambda q: calls.append(q) or (b"mesh", None), time_.monotonic(), "h3edge/m/mesh"))
     worker = threading.Thread(target=server._work, args=(server._heavy,), daemon=True)
     worker.start()
     end = time_.monotonic() + 5

@@ -32,7 +32,7 @@ import numpy as np
 import zenoh
 
 from h3edge.geometry.camera import Intrinsics, invert_pose, rigid_error
-from h3edge.io.distance_types import UNKNOWN, DistanceSlice, slice_from_sample, slice_grid
+from h3edge.io.distance_types import FREE, INSIDE, NEAR, UNKNOWN, DistanceSlice, slice_from_sample, slice_grid
 from h3edge.io.protocol import Keys, decode_frame
 from h3edge.serving.client import RemoteError, open_client_session, query, read_npz, render_request
 
@@ -85,6 +85,7 @@ def format_fleet(entries: list[dict], seconds: float | None = None) -> str:
 
 
 SDF_MARGIN = 0.5  # m: a map is asked about points this far outside its voxels' box too (its free space, votes)
+SAME_SURFACE_M = 0.05  # m: near answers of several maps this close to the least are one surface: averaged
 
 
 @dataclass
@@ -98,7 +99,8 @@ class FleetDistance:
     gradient: np.ndarray | None
     """(N, 3) float32 in the site frame, where asked"""
     source: np.ndarray
-    """(N,) int: index into ``maps`` of the map whose answer was taken (-1: none)"""
+    """(N,) int: index into ``maps`` of the map whose answer was taken, the least where several near
+    answers were averaged (-1: none)"""
     maps: list[str] = field(default_factory=list)
     """the maps that answered, in the order ``source`` indexes"""
     missing: dict[str, str] = field(default_factory=dict)
@@ -107,25 +109,57 @@ class FleetDistance:
     """maps the points do not come near (not asked)"""
 
 
-def merge_distances(answers: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], n: int
+def merge_distances(answers: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], n: int,
+                    same_surface: float = SAME_SURFACE_M
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """(sdf, state, gradient, source) over ``n`` points from each map's (sdf (n,), state (n,),
-    gradient (n, 3) or None) in the site frame: at each point the least signed distance among the
-    maps that know it (state != unknown), its state, gradient and map index: the nearest surface any
-    map knows, inside where any map knows the point inside (a planner's conservative reading); a
-    free answer is a lower bound (at least the truncation) and gives way to any nearer one. NaN,
-    unknown and -1 where no map knows the point."""
-    sdf = np.full(n, np.inf, np.float64)
+    gradient (n, 3) or None) in the site frame, per point:
+
+    - inside where any map knows the point inside (the least such distance: a planner's
+      conservative reading);
+    - else, where some maps see a surface near it, the nearest surface: the near answers within
+      ``same_surface`` metres of the least are one surface seen by several maps and are averaged,
+      distance and gradient (as a map of all their frames would fuse them); farther ones are
+      another surface behind it;
+    - else free where any map knows it free (a lower bound: at least the truncation);
+    - else unknown: NaN, -1.
+
+    ``source``: the map of the least answer taken. ``gradient``: None unless every map gave one."""
+    sdf = np.full(n, np.nan, np.float32)
     state = np.full(n, UNKNOWN, np.uint8)
     source = np.full(n, -1, np.int64)
     grad = np.full((n, 3), np.nan, np.float32) if answers and all(a[2] is not None for a in answers) else None
-    for i, (d, st, g) in enumerate(answers):
-        take = (np.asarray(st) != UNKNOWN) & np.isfinite(d) & (np.asarray(d, np.float64) < sdf)
-        sdf[take], state[take], source[take] = np.asarray(d, np.float64)[take], np.asarray(st)[take], i
-        if grad is not None:
-            grad[take] = np.asarray(g, np.float32)[take]
-    sdf[source < 0] = np.nan
-    return sdf.astype(np.float32), state, grad, source
+    if not answers:
+        return sdf, state, grad, source
+    d = np.stack([np.asarray(a[0], np.float64).reshape(n) for a in answers])
+    st = np.stack([np.asarray(a[1]).reshape(n) for a in answers])
+    known = (st != UNKNOWN) & np.isfinite(d)
+    for kind in (INSIDE, NEAR, FREE):  # the first kind any map answers wins
+        mask = known & (st == kind)
+        open_ = (state == UNKNOWN) & mask.any(0)
+        if not open_.any():
+            continue
+        masked = np.where(mask, d, np.inf)
+        least = masked.argmin(0)
+        cols = np.flatnonzero(open_)
+        source[cols] = least[cols]
+        state[cols] = kind
+        if kind == NEAR:
+            same = mask & (masked <= masked.min(0) + same_surface)
+            sdf[cols] = (np.where(same, d, 0).sum(0) / np.maximum(same.sum(0), 1))[cols]
+            if grad is not None:
+                g = np.stack([np.asarray(a[2], np.float32).reshape(n, 3) for a in answers])  # (m, n, 3)
+                with np.errstate(invalid="ignore"):
+                    g_same = np.where(same[..., None], g, np.nan)
+                    ok = np.isfinite(g_same).all(2) & same
+                    mean = np.where(ok[..., None], g_same, 0).sum(0) / np.maximum(ok.sum(0), 1)[:, None]
+                grad[cols] = np.where(ok.any(0)[:, None], mean, np.nan)[cols]
+        else:
+            sdf[cols] = masked.min(0)[cols]
+            if grad is not None:
+                g = np.stack([np.asarray(a[2], np.float32).reshape(n, 3) for a in answers])
+                grad[cols] = g[least[cols], cols]
+    return sdf, state, grad, source
 
 
 @dataclass(frozen=True)
