@@ -182,6 +182,84 @@ def decode_or_refuse(which: str, data: bytes) -> str:
     return "ok"
 
 
+QUERY_FIELDS = {"mesh": ["format", "resolution", "aabb"],
+                "render": ["pose", "width", "height", "intrinsics", "fov_deg", "raw"],
+                "sdf": ["points", "gradient"], "slice": ["z", "aabb", "resolution"],
+                "save": ["name"], "export": ["name", "format"]}
+_JSON = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(-(10 ** 30), 10 ** 30),
+              st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+              st.sampled_from(["x" * 5000, "../../etc/passwd", "a/b", "", "1,2,3,4", "-1e308,0,1e308,1",
+                               "0,0,0,1,1,1", "glb", "ply", "true", "nan"])),
+    lambda inner: st.one_of(st.lists(inner, max_size=6), st.dictionaries(st.text(max_size=6), inner, max_size=4)),
+    max_leaves=12)
+
+
+QUERY_TEMPLATES = {"mesh": {"format": "ply", "resolution": 5, "aabb": [[0, 0, 0], [1, 1, 1]]},
+                   "render": {"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "width": 64, "height": 48,
+                              "fov_deg": 60, "raw": True},
+                   "sdf": {"points": [[0, 0, 0], [1, 2, 3]], "gradient": False},
+                   "slice": {"z": 1.0, "aabb": [[0, 0], [2, 2]], "resolution": 0.05},
+                   "save": {"name": "before-lunch"}, "export": {"name": "mesh1", "format": "glb"}}
+_EDGE = st.sampled_from([0, -0.0, 1e-300, -1, 1e308, -1e308, 10 ** 400, float("nan"), float("inf"), 2 ** 63,
+                         "1e309", [1e308, 1e308, 1e308], [[0, 0, 0], [float("nan"), 1, 1]], [[1, 1], [0, 0]],
+                         {"matrix": [1e300] * 16}, {"t": [0, 0, 1e300], "q": [0, 0, 0, 1]},
+                         {"t": [0, 0, 0], "q": [0, 0, 0, 0]}, {"fx": 1e-300, "fy": 1, "cx": 0, "cy": 0}])
+
+
+@st.composite
+def hostile_query(draw) -> tuple[str, dict, bytes | None]:
+    """(kind, request, raw payload): a valid request of each kind with one to three fields (or a stray
+    one) set to hostile JSON values (edge numbers, nested lists, long and path-like strings), or one
+    made of hostile fields only; for sdf, sometimes raw float32 bytes of any length and content."""
+    kind = draw(st.sampled_from(sorted(QUERY_FIELDS)))
+    if draw(st.booleans()):
+        req = dict(QUERY_TEMPLATES[kind])
+        for f in draw(st.lists(st.sampled_from([*QUERY_FIELDS[kind], "junk"]), min_size=1, max_size=3,
+                               unique=True)):
+            req[f] = draw(st.one_of(_EDGE, _JSON))
+    else:
+        fields = draw(st.lists(st.sampled_from([*QUERY_FIELDS[kind], "junk"]), max_size=5, unique=True))
+        req = {f: draw(_JSON) for f in fields}
+    raw = None
+    if kind == "sdf" and draw(st.booleans()):
+        raw = draw(st.one_of(st.binary(max_size=240), st.lists(st.floats(width=32), min_size=3, max_size=30).map(
+            lambda v: np.asarray(v[: len(v) // 3 * 3], "<f4").tobytes())))
+    return kind, req, raw
+
+
+QUERY_CAPS = {"max_pixels": 640 * 480, "max_points": 1000, "max_cells": 4_000_000, "max_resolution": 10}
+
+
+def parse_or_refuse(kind: str, req: dict, raw: bytes | None) -> str:
+    """'ok' when the service's parser takes the request (and what it gives is within the caps and
+    finite), 'refused' on a QueryError; anything else propagates (a crash the fuzzer reports)."""
+    import numpy as np
+
+    from h3edge.errors import QueryError
+    from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
+
+    c = QUERY_CAPS
+    try:
+        if kind == "mesh":
+            r = MeshRequest.parse(req, 5, c["max_resolution"])
+            assert 1 <= r.resolution <= c["max_resolution"] and (r.aabb is None or np.isfinite(r.aabb).all())
+        elif kind == "render":
+            r = RenderRequest.parse(req, c["max_pixels"])
+            assert r.intrinsics.width * r.intrinsics.height <= c["max_pixels"] and np.isfinite(r.pose).all()
+        elif kind == "sdf":
+            r = SdfRequest.parse(req, raw, c["max_points"])
+            assert 0 < len(r.points) <= c["max_points"] and np.isfinite(r.points).all()
+        elif kind == "slice":
+            r = SliceRequest.parse(req, c["max_cells"])
+            assert np.isfinite([r.z, *r.lo, *r.hi, r.resolution]).all()
+        else:
+            NamedRequest.parse(req, kind)
+    except QueryError:
+        return "refused"
+    return "ok"
+
+
 def wire_messages(good) -> tuple[bytes, bytes]:
     f = good[0]
     return (protocol.encode_frame(protocol.FrameMessage(1_000_000_000, 1, f.color, f.depth, f.intrinsics, f.pose),
@@ -197,6 +275,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--examples", type=int, default=500, help="hypothesis examples of each fuzzer")
     ap.add_argument("--work", default="out/bench_mapping", help="where the tiny scene is cached")
     ap.add_argument("--out", default="", help="write OUT.json and OUT.md")
+    ap.add_argument("--parts", default="frames,wire,queries", help="which fuzzers run (comma-separated)")
     args = ap.parse_args(argv)
     good = [f for _, f in zip(range(4), open_sequence(ensure_scene(Path(args.work) / "scene_tiny", PRESETS["tiny"])))]
     reference = map_signature(run_interleaved(good, []))
@@ -220,24 +299,42 @@ def main(argv: list[str] | None = None) -> dict:
     def messages(item):
         wire[(item[0], decode_or_refuse(*item))] += 1
 
-    frames()
-    messages()
+    queries: collections.Counter = collections.Counter()
+
+    @settings(max_examples=args.examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(hostile_query())
+    def query_requests(item):
+        queries[(item[0], parse_or_refuse(*item))] += 1
+
+    parts = set(args.parts.split(","))
+    if "frames" in parts:
+        frames()
+    if "wire" in parts:
+        messages()
+    if "queries" in parts:
+        query_requests()
     result = {"runs": runs["n"], "hostile_frames": sum(tally.values()), "wire_messages": sum(wire.values()),
-              "invariant_held": True,
+              "query_requests": sum(queries.values()), "invariant_held": True,
               "by_class": {f"{k} | {how}": n for (k, how), n in sorted(tally.items())},
-              "wire": {f"{k} | {v}": n for (k, v), n in sorted(wire.items())}}
+              "wire": {f"{k} | {v}": n for (k, v), n in sorted(wire.items())},
+              "queries": {f"{k} | {v}": n for (k, v), n in sorted(queries.items())}}
     lines = [f"Differential fuzzer: {result['runs']} runs, {result['hostile_frames']} hostile frames interleaved "
              f"with 4 good ones, {result['wire_messages']} hostile wire messages; the map after every run equal to "
              "the good frames' alone: held.", "", "| class | refused as | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {how} | {n} |" for (k, how), n in sorted(tally.items())]
     lines += ["", "| wire message | outcome | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(wire.items())]
+    lines += ["", f"{sum(queries.values())} hostile query requests through the service's parsers (anything but a "
+              "refusal or a request within the caps would have failed the run):", "",
+              "| query | outcome | inputs |", "|---|---|---|"]
+    lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(queries.items())]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
         Path(args.out).with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
         Path(args.out).with_suffix(".md").write_text(
-            f"<!-- python -m benchmarks.fuzz --examples {args.examples} --out {args.out} -->\n" + text)
+            f"<!-- python -m benchmarks.fuzz --examples {args.examples} --parts {args.parts} --out {args.out} -->\n"
+            + text)
     return result
 
 

@@ -3,7 +3,8 @@
 grammar (poses, depth, shapes, intrinsics, stamps) interleaved with four good frames leave the map
 the good frames alone make, every array of its state equal; each is an InputError or a counted
 drop. Hostile wire messages (truncated, bit-flipped, a header field replaced) are ProtocolErrors or
-decode, nothing else. Seeded (derandomized) and bounded."""
+decode, nothing else; hostile query requests are refused or within the caps. Seeded (derandomized)
+and bounded."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ from benchmarks.fuzz import (
     decode_or_refuse,
     hostile_bytes,
     hostile_frame,
+    hostile_query,
     map_signature,
+    parse_or_refuse,
     run_interleaved,
     same_map,
     wire_messages,
@@ -62,3 +65,24 @@ def test_hostile_wire_messages_are_protocol_errors(good):
 
     run()
     assert seen["refused"] > 0
+
+
+def test_hostile_query_requests_are_refused_or_within_the_caps():
+    """Query requests of every kind with hostile field values (huge and non-finite numbers, nested
+    lists, long and path-like strings, raw sdf bytes of any length) are QueryErrors (error replies) or
+    requests within the service's caps; nothing else escapes the parsers."""
+    seen: collections.Counter = collections.Counter()
+
+    @settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(hostile_query())
+    def run(item):
+        seen[(item[0], parse_or_refuse(*item))] += 1
+
+    run()
+    assert {k for k, _ in seen} == {"mesh", "render", "sdf", "slice", "save", "export"}
+    assert {v for _, v in seen} == {"ok", "refused"}
+    # what the long run found: a JSON integer of 400 digits raised OverflowError (an internal error reply)
+    huge = 10 ** 400
+    assert parse_or_refuse("render", {"pose": {"t": [0, 0, 0], "q": [0, 0, 0, 1]}, "fov_deg": huge}, None) == "refused"
+    assert parse_or_refuse("slice", {"z": huge, "aabb": [[0, 0], [1, 1]]}, None) == "refused"
+    assert parse_or_refuse("mesh", {"aabb": [[0, 0, 0], [huge, 1, 1]]}, None) == "refused"

@@ -55,7 +55,7 @@ class MeshRequest:
         if aabb is not None:
             try:
                 box = np.asarray(aabb, np.float64)
-            except (ValueError, TypeError):
+            except (ValueError, TypeError, OverflowError):
                 box = np.zeros(0)
             if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
                 raise QueryError("aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
@@ -94,7 +94,7 @@ class RenderRequest:
                     raise QueryError("fov_deg must be in [1, 170]")
                 f = (w / 2) / np.tan(np.radians(fov) / 2)
                 intr = Intrinsics(w, h, f, f, w / 2, h / 2)
-        except (ProtocolError, KeyError, TypeError, ValueError) as e:
+        except (ProtocolError, KeyError, TypeError, ValueError, OverflowError) as e:
             raise QueryError(f"render request: {e}") from None
         return cls(intr, pose, bool(req.get("raw", False)))
 
@@ -160,7 +160,7 @@ class SliceRequest:
             v = [float(x) for x in box.split(",")] if isinstance(box, str) else [float(x) for p in box for x in p]
         except KeyError as e:
             raise QueryError(f"slice request needs {e.args[0]!r}") from None
-        except (ValueError, TypeError):
+        except (ValueError, TypeError, OverflowError):
             raise QueryError('slice needs numbers: "z", "resolution" and "aabb" x0,y0,x1,y1') from None
         if len(v) != 4 or not np.isfinite(v + [z, res]).all() or v[0] >= v[2] or v[1] >= v[3]:
             raise QueryError("slice aabb must be x0,y0,x1,y1 with x0 < x1 and y0 < y1")
