@@ -10,9 +10,14 @@ beyond ``max_position``; depth with nothing valid in it (NaN, inf, 0, negative, 
 ``max_depth``); images of the wrong shape or dtype; intrinsics that are no pinhole camera (as a K
 matrix); stamps that are NaN, infinite, or not after the last mapped one; and wire messages
 (frame and pose bytes: truncated, bit-flipped, header fields replaced) for the protocol's
-decoders, which must raise ProtocolError and nothing else.
+decoders, which must raise ProtocolError and nothing else; query requests of every kind with
+hostile field values (the service's parsers: a QueryError or a request within the caps); and ROS 2
+messages (``ros``: unreadable images, images of another size at a good frame's stamp, unusable
+camera infos, non-finite or non-rotation poses, truncated messages) interleaved with a camera's
+good colour, depth, camera info and odometry, after which the ROS ingest must have handed on the
+frames and poses the good messages alone make.
 
-    python -m benchmarks.fuzz [--examples 500] [--out research/bench_fuzz]
+    python -m benchmarks.fuzz [--examples 500] [--parts frames,wire,queries,ros] [--out research/bench_fuzz]
 
 Prints a table (inputs tried by class, how each was refused, whether the invariant held) and
 writes JSON. ``tests/test_fuzz.py`` runs the same with a few examples, seeded.
@@ -260,6 +265,108 @@ def parse_or_refuse(kind: str, req: dict, raw: bytes | None) -> str:
     return "ok"
 
 
+ROS_STAMP0 = 1_000_000_000_000_000_000  # ns: the good ROS frames' first stamp (10 Hz after it)
+
+
+def _ros_stamp(k: int) -> int:
+    return ROS_STAMP0 + k * 100_000_000
+
+
+def ros_good_stream(good) -> list[tuple[str, bytes]]:
+    """(role, CDR bytes) of the good frames as a ROS 2 camera and odometry publish them: camera info,
+    then per frame the odometry, the colour and the depth image at one stamp."""
+    from h3edge.io import ros
+
+    f0 = good[0]
+    out = [("camera_info", ros.serialize(ros.camera_info_message(f0.intrinsics, _ros_stamp(0), "cam")))]
+    for k, f in enumerate(good):
+        st = _ros_stamp(k)
+        out += [("pose", ros.serialize(ros.odometry_message(f.pose, st, "odom", "base_link"))),
+                ("color", ros.serialize(ros.color_message(f.color, st, "cam"))),
+                ("depth", ros.serialize(ros.depth_message(f.depth, st, "cam")))]
+    return out
+
+
+@st.composite
+def hostile_ros(draw, good) -> tuple[str, str, bytes]:
+    """(role, class, CDR bytes): a ROS message that must be refused: an image that cannot be read
+    (encoding, size against its bytes, row step) or of another size than the camera's at a good
+    frame's stamp, a camera info with unusable intrinsics, a pose that is not finite or not a rotation,
+    or a good message's bytes truncated."""
+    from h3edge.io import ros
+
+    f = good[1]
+    k = draw(st.integers(0, len(good) - 1))
+    stamp = draw(st.sampled_from([_ros_stamp(k), _ros_stamp(k) + 1, ROS_STAMP0 - 10 ** 9, (2 ** 31 - 1) * 10 ** 9]))
+    cls = draw(st.sampled_from(["image", "size", "info", "pose", "bytes"]))
+    if cls in ("image", "size"):
+        role = draw(st.sampled_from(["color", "depth"]))
+        msg = ros.color_message(f.color, stamp, "cam") if role == "color" else ros.depth_message(f.depth, stamp, "cam")
+        if cls == "size":  # readable, but not the camera's size
+            h, w = draw(st.sampled_from([(f.color.shape[0] // 2, f.color.shape[1] // 2), (8, 8), (1, 1)]))
+            msg = (ros.color_message(f.color[:h, :w], stamp, "cam") if role == "color"
+                   else ros.depth_message(f.depth[:h, :w], stamp, "cam"))
+        else:
+            how = draw(st.sampled_from(["encoding", "width", "height", "step", "data"]))
+            if how == "encoding":
+                msg.encoding = draw(st.sampled_from(["", "nonsense", "x" * 300, "yuv422_yuy2", "bayer_rggb8"]))
+            elif how in ("width", "height"):
+                setattr(msg, how, draw(st.sampled_from([0, 1, getattr(msg, how) + 1, 2 ** 31 - 1])))
+            elif how == "step":
+                msg.step = draw(st.sampled_from([0, 1, msg.step - 1]))
+            else:
+                msg.data = msg.data[: draw(st.integers(0, len(msg.data) - 1))]
+        return role, cls, ros.serialize(msg)
+    if cls == "info":
+        msg = ros.camera_info_message(f.intrinsics, stamp, "cam")
+        i = draw(st.sampled_from([0, 2, 4, 5]))  # fx, cx, fy, cy in K (a principal point off the image is legal)
+        focal = [0.0, -1.0, 1e-300] if i in (0, 4) else []
+        msg.k[i] = draw(st.sampled_from([float("nan"), float("inf"), 1e300, -1e300, *focal]))
+        return "camera_info", cls, ros.serialize(msg)
+    if cls == "pose":
+        pose = f.pose.copy()
+        msg = ros.odometry_message(pose, stamp, "odom", "base_link")
+        how = draw(st.sampled_from(["nan", "quaternion", "child"]))
+        if how == "nan":
+            msg.pose.pose.position.x = float("nan")
+        elif how == "quaternion":
+            q = msg.pose.pose.orientation
+            q.x, q.y, q.z, q.w = draw(st.sampled_from([(0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0),
+                                                       (0.0, 0.0, 0.0, float("inf"))]))
+        else:
+            msg.child_frame_id = draw(st.sampled_from(["laser", ""]))
+        return "pose", cls, ros.serialize(msg)
+    role, data = draw(st.sampled_from(ros_good_stream(good[:2])))
+    return role, cls, data[: draw(st.integers(0, max(0, len(data) - 1)))]
+
+
+def run_ros(stream: list[tuple[str, bytes]], hostile: list[tuple[int, str, bytes]]) -> tuple[list, list, dict]:
+    """Feed ``stream`` to a RosIngest with ``hostile`` messages inserted (before stream position p);
+    (frames handed on, poses handed on, drops by reason)."""
+    from h3edge.io.ros import RosConfig
+    from h3edge.serving.ros_ingest import RosIngest
+
+    frames, poses = [], []
+
+    def frame(data: bytes) -> None:  # what a frame carries, less the ingest's running number
+        m = protocol.decode_frame(data)
+        frames.append((m.timestamp_ns, m.color.tobytes(), m.depth.tobytes(), m.intrinsics, m.frame_name))
+
+    ing = RosIngest(RosConfig(base_to_camera="identity", world_frame="odom"), frame,
+                    lambda t, m: poses.append((t, m.round(9).tobytes())), lambda c, m: None)
+    handlers = {r: ing.handler(r) for r in ("color", "depth", "camera_info", "pose")}
+    extra = collections.defaultdict(list)
+    for pos, role, data in hostile:
+        extra[pos].append((role, data))
+    for i, (role, data) in enumerate(stream):
+        for r, d in extra.get(i, []):
+            handlers[r](d)
+        handlers[role](data)
+    for r, d in extra.get(len(stream), []):
+        handlers[r](d)
+    return frames, poses, dict(ing.drops)
+
+
 def wire_messages(good) -> tuple[bytes, bytes]:
     f = good[0]
     return (protocol.encode_frame(protocol.FrameMessage(1_000_000_000, 1, f.color, f.depth, f.intrinsics, f.pose),
@@ -275,7 +382,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--examples", type=int, default=500, help="hypothesis examples of each fuzzer")
     ap.add_argument("--work", default="out/bench_mapping", help="where the tiny scene is cached")
     ap.add_argument("--out", default="", help="write OUT.json and OUT.md")
-    ap.add_argument("--parts", default="frames,wire,queries", help="which fuzzers run (comma-separated)")
+    ap.add_argument("--parts", default="frames,wire,queries,ros", help="which fuzzers run (comma-separated)")
     args = ap.parse_args(argv)
     good = [f for _, f in zip(range(4), open_sequence(ensure_scene(Path(args.work) / "scene_tiny", PRESETS["tiny"])))]
     reference = map_signature(run_interleaved(good, []))
@@ -306,6 +413,20 @@ def main(argv: list[str] | None = None) -> dict:
     def query_requests(item):
         queries[(item[0], parse_or_refuse(*item))] += 1
 
+    ros_stream = ros_good_stream(good)
+    ros_frames, ros_poses, _ = run_ros(ros_stream, [])
+    ros_tally: collections.Counter = collections.Counter()
+    ros_runs = {"n": 0}
+
+    @settings(max_examples=args.examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(st.lists(st.tuples(st.integers(0, len(ros_stream)), hostile_ros(good)), min_size=1, max_size=8))
+    def ros_messages(items):
+        got_frames, got_poses, drops = run_ros(ros_stream, [(p, role, data) for p, (role, _, data) in items])
+        ros_runs["n"] += 1
+        ros_tally.update((role, cls) for _, (role, cls, _) in items)
+        assert got_frames == ros_frames and got_poses == ros_poses
+        assert "ros_internal_error" not in drops, drops
+
     parts = set(args.parts.split(","))
     if "frames" in parts:
         frames()
@@ -313,12 +434,17 @@ def main(argv: list[str] | None = None) -> dict:
         messages()
     if "queries" in parts:
         query_requests()
+    if "ros" in parts:
+        ros_messages()
     result = {"runs": runs["n"], "hostile_frames": sum(tally.values()), "wire_messages": sum(wire.values()),
-              "query_requests": sum(queries.values()), "invariant_held": True,
+              "query_requests": sum(queries.values()), "ros_runs": ros_runs["n"],
+              "ros_messages": sum(ros_tally.values()), "invariant_held": True,
               "by_class": {f"{k} | {how}": n for (k, how), n in sorted(tally.items())},
               "wire": {f"{k} | {v}": n for (k, v), n in sorted(wire.items())},
-              "queries": {f"{k} | {v}": n for (k, v), n in sorted(queries.items())}}
-    lines = [f"Differential fuzzer: {result['runs']} runs, {result['hostile_frames']} hostile frames interleaved "
+              "queries": {f"{k} | {v}": n for (k, v), n in sorted(queries.items())},
+              "ros": {f"{k} | {v}": n for (k, v), n in sorted(ros_tally.items())}}
+    lines = [f"Differential fuzzer ({args.parts}): {result['runs']} runs, {result['hostile_frames']} hostile frames "
+             "interleaved "
              f"with 4 good ones, {result['wire_messages']} hostile wire messages; the map after every run equal to "
              "the good frames' alone: held.", "", "| class | refused as | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {how} | {n} |" for (k, how), n in sorted(tally.items())]
@@ -328,6 +454,11 @@ def main(argv: list[str] | None = None) -> dict:
               "refusal or a request within the caps would have failed the run):", "",
               "| query | outcome | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(queries.items())]
+    lines += ["", f"ROS: {ros_runs['n']} runs, {sum(ros_tally.values())} hostile ROS 2 messages interleaved with a "
+              "camera's good colour, depth, camera info and odometry (4 frames); the frames and poses the ROS "
+              "ingest handed on equal to the good messages' alone in every run:", "",
+              "| topic | class | messages |", "|---|---|---|"]
+    lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(ros_tally.items())]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

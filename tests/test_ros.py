@@ -249,7 +249,13 @@ def test_depth_from_its_own_camera_is_registered_live_with_the_extrinsics():
     assert (cols.min(), cols.max(), rows.min(), rows.max()) == (2, 13, 2, 10), (cols, rows)
     on["depth"](ros.serialize(ros.depth_message(np.full((5, 8), 1.5, np.float32), 20, "depth")))  # not its size
     on["color"](ros.serialize(ros.color_message(np.full((12, 16, 3), 90, np.uint8), 20, "cam")))
-    assert len(sink.frames) == 1 and ing.drops["ros_size_mismatch"] == 1
+    assert len(sink.frames) == 1 and not ing.drops  # the colour image waits: it is not the odd one's
+    on["depth"](ros.serialize(ros.depth_message(np.full((6, 8), 1.5, np.float32), 20, "depth")))  # its depth
+    assert len(sink.frames) == 2 and not ing.drops
+    for role, msg in (("color", ros.color_message(np.full((12, 16, 3), 90, np.uint8), 30, "cam")),
+                      ("depth", ros.depth_message(np.full((6, 8), 1.5, np.float32), 30, "depth"))):
+        on[role](ros.serialize(msg))
+    assert len(sink.frames) == 3 and dict(ing.drops) == {"ros_size_mismatch": 1}  # the odd one, aged out
 
 
 def test_tf_messages_take_only_the_base_transform():

@@ -44,11 +44,12 @@ log = logging.getLogger(__name__)
 IMAGE_HEADER_BYTES = 4096  # bytes of a sensor_msgs/Image besides its pixels (stamp, frame id, encoding) allowed
 
 
-@dataclass
+@dataclass(eq=False)  # an image is itself: buffers remove it by identity, never by comparing pixels
 class _Image:
     stamp: int
     frame_id: str
     array: np.ndarray
+    mismatch: str = ""  # why an image of the other kind at its stamp did not go with it (its drop reason)
 
 
 class RosIngest:
@@ -162,33 +163,42 @@ class RosIngest:
 
     def _pair_and_send(self, img: _Image, mine: collections.deque, others: collections.deque, is_color: bool) -> None:
         tol = int(self.cfg.pair_tolerance_s * 1e9)
+        depth_info = self._depth_info
         with self._lock:
-            best = min(others, key=lambda o: abs(o.stamp - img.stamp), default=None)
-            if best is None or abs(best.stamp - img.stamp) > tol:
+            near = [o for o in others if abs(o.stamp - img.stamp) <= tol]
+            # only an image of a size that goes with this one is its pair: an image of another size (a
+            # bad message, or depth not registered) takes no good image with it; both wait, and the one
+            # left without a pair is dropped as ros_size_mismatch when it ages out
+            fit = [o for o in near if self._sizes_fit(*((img, o) if is_color else (o, img)), depth_info)]
+            best = min(fit, key=lambda o: abs(o.stamp - img.stamp), default=None)
+            if best is None:
+                for o in near:
+                    color, depth = (img, o) if is_color else (o, img)
+                    why = (f"colour {color.array.shape[1]}x{color.array.shape[0]} and depth {depth.array.shape[1]}x"
+                           f"{depth.array.shape[0]} at one stamp differ: publish depth registered to the colour "
+                           "camera, or its camera info and the depth -> colour extrinsics (depth_to_color)")
+                    img.mismatch = o.mismatch = why
                 mine.append(img)
-                while len(mine) > self.cfg.pair_buffer:
-                    mine.popleft()
-                    self.drops["ros_unpaired"] += 1
-                return
-            others.remove(best)
-            color, depth = (img, best) if is_color else (best, img)
-            # images older than the pair will never be paired now
-            for q, t in ((self._colors, color.stamp), (self._depths, depth.stamp)):
-                while q and q[0].stamp < t:
-                    q.popleft()
-                    self.drops["ros_unpaired"] += 1
+                aged = [mine.popleft() for _ in range(max(0, len(mine) - self.cfg.pair_buffer))]
+            else:
+                others.remove(best)
+                color, depth = (img, best) if is_color else (best, img)
+                aged = []
+        self._age_out(aged)
+        if best is None:
+            return
+        with self._lock:
             h, w = color.array.shape[:2]
             intr = self._infos.get((w, h))
+            aged = []
+            if intr is not None:  # images older than a pair that goes on will never be paired now (a pair
+                # that waits for a camera info of its size may never go on: it purges nothing)
+                for q, t in ((self._colors, color.stamp), (self._depths, depth.stamp)):
+                    while q and q[0].stamp < t:
+                        aged.append(q.popleft())
             self._next_id += 1
             frame_id = self._next_id
-        depth_info = self._depth_info
-        registers = (self.depth_to_color is not None and depth_info is not None
-                     and depth.array.shape == (depth_info.height, depth_info.width))
-        if depth.array.shape != (h, w) and not registers:
-            self._drop("ros_size_mismatch", f"colour {w}x{h} and depth {depth.array.shape[1]}x{depth.array.shape[0]}"
-                                            " differ: publish depth registered to the colour camera, or its camera "
-                                            "info and the depth -> colour extrinsics (depth_to_color)")
-            return
+        self._age_out(aged)
         if intr is None:
             with self._lock:
                 self._waiting.append((frame_id, color, depth))
@@ -200,6 +210,24 @@ class RosIngest:
                                                  f"while {self.cfg.pair_buffer} pairs waited for it")
             return
         self._send(frame_id, color, depth, intr)
+
+    def _age_out(self, images: list[_Image]) -> None:
+        """Count images that leave the pair buffers without a pair: ``ros_size_mismatch`` with its reason
+        where an image of the other kind at their stamp was of a size that does not go with them, else
+        ``ros_unpaired``."""
+        for img in images:
+            if img.mismatch:
+                self._drop("ros_size_mismatch", img.mismatch)
+            else:
+                self.drops["ros_unpaired"] += 1
+
+    def _sizes_fit(self, color: _Image, depth: _Image, depth_info: Intrinsics | None) -> bool:
+        """Whether ``depth`` can go with ``color``: the same size, or the depth camera's own size when it
+        is registered into the colour camera (``depth_to_color``)."""
+        if depth.array.shape == color.array.shape[:2]:
+            return True
+        return (self.depth_to_color is not None and depth_info is not None
+                and depth.array.shape == (depth_info.height, depth_info.width))
 
     def _send(self, frame_id: int, color: _Image, depth: _Image, intr: Intrinsics) -> None:
         depth_info = self._depth_info
