@@ -2,9 +2,13 @@
 into camera poses, both handed to the service's :class:`~h3edge.serving.ingest.Ingest`.
 
 - Colour and depth are paired by header stamp: each new image looks for the other kind within
-  ``pair_tolerance_s`` among the last ``pair_buffer`` of it; paired images become one raw frame
-  message (no re-encoding) stamped with the colour image's stamp, carrying the latest camera info
-  of that size. Unpaired images age out of the buffer (counted ``unpaired``).
+  ``pair_tolerance_s`` among the last ``pair_buffer`` of it, of a size that goes with it (the same,
+  or the depth camera's own when depth is registered); paired images become one raw frame message
+  (no re-encoding) stamped with the colour image's stamp, carrying the latest camera info of that
+  size. Unpaired images age out of the buffer (counted ``ros_unpaired``; ``ros_size_mismatch``, with
+  the sizes, for one that met only images of another size at its stamp): an odd image never takes a
+  good one with it. A pair that goes on makes the older waiting images moot (aged out); a pair that
+  waits for a camera info of its size does not.
 - Camera info comes on its own topic, in no fixed order with the images: a pair whose size has no
   camera info yet waits (at most ``pair_buffer`` pairs) and goes on, in stamp order, when camera info
   of its size arrives; a pair pushed out of that wait is counted ``ros_no_camera_info``.
