@@ -272,23 +272,32 @@ def _ros_stamp(k: int) -> int:
     return ROS_STAMP0 + k * 100_000_000
 
 
-def ros_good_stream(good) -> list[tuple[str, bytes]]:
-    """(role, CDR bytes) of the good frames as a ROS 2 camera and odometry publish them: camera info,
-    then per frame the odometry, the colour and the depth image at one stamp."""
+def _ros_pose(pose: np.ndarray, stamp: int, pose_type: str):
+    from h3edge.io import ros
+
+    if pose_type == "tf":  # the robot's transform among others of its tree
+        return ros.tf_message([(np.eye(4), stamp, "map", "odom"), (pose, stamp, "odom", "base_link"),
+                               (np.eye(4), stamp, "base_link", "laser")])
+    return ros.odometry_message(pose, stamp, "odom", "base_link")
+
+
+def ros_good_stream(good, pose_type: str = "odometry") -> list[tuple[str, bytes]]:
+    """(role, CDR bytes) of the good frames as a ROS 2 camera and odometry (or TF) publish them:
+    camera info, then per frame the pose, the colour and the depth image at one stamp."""
     from h3edge.io import ros
 
     f0 = good[0]
     out = [("camera_info", ros.serialize(ros.camera_info_message(f0.intrinsics, _ros_stamp(0), "cam")))]
     for k, f in enumerate(good):
         st = _ros_stamp(k)
-        out += [("pose", ros.serialize(ros.odometry_message(f.pose, st, "odom", "base_link"))),
+        out += [("pose", ros.serialize(_ros_pose(f.pose, st, pose_type))),
                 ("color", ros.serialize(ros.color_message(f.color, st, "cam"))),
                 ("depth", ros.serialize(ros.depth_message(f.depth, st, "cam")))]
     return out
 
 
 @st.composite
-def hostile_ros(draw, good) -> tuple[str, str, bytes]:
+def hostile_ros(draw, good, pose_type: str = "odometry") -> tuple[str, str, bytes]:
     """(role, class, CDR bytes): a ROS message that must be refused: an image that cannot be read
     (encoding, size against its bytes, row step) or of another size than the camera's at a good
     frame's stamp, a camera info with unusable intrinsics, a pose that is not finite or not a rotation,
@@ -323,6 +332,23 @@ def hostile_ros(draw, good) -> tuple[str, str, bytes]:
         focal = [0.0, -1.0, 1e-300] if i in (0, 4) else []
         msg.k[i] = draw(st.sampled_from([float("nan"), float("inf"), 1e300, -1e300, *focal]))
         return "camera_info", cls, ros.serialize(msg)
+    if cls == "pose" and pose_type == "tf":  # other links anything, the robot's one broken (or absent)
+        others = [(np.eye(4), stamp, "base_link", f"link{i}") for i in range(draw(st.sampled_from([0, 3, 2000])))]
+        msg = ros.tf_message([*others, (f.pose, stamp, "odom", "base_link")])
+        for tr in msg.transforms[: draw(st.integers(0, len(others)))]:
+            tr.transform.translation.x = draw(st.sampled_from([float("nan"), 1e300]))
+            tr.transform.rotation.w = draw(st.sampled_from([3.0, float("nan"), 1.0]))
+        base = msg.transforms[-1]
+        how = draw(st.sampled_from(["nan", "quaternion", "parent", "absent"]))
+        if how == "nan":
+            base.transform.translation.y = float("nan")
+        elif how == "quaternion":
+            base.transform.rotation.w = 2.0
+        elif how == "parent":
+            base.header.frame_id = "elsewhere"
+        else:
+            msg.transforms.pop()
+        return "pose", cls, ros.serialize(msg)
     if cls == "pose":
         pose = f.pose.copy()
         msg = ros.odometry_message(pose, stamp, "odom", "base_link")
@@ -336,11 +362,12 @@ def hostile_ros(draw, good) -> tuple[str, str, bytes]:
         else:
             msg.child_frame_id = draw(st.sampled_from(["laser", ""]))
         return "pose", cls, ros.serialize(msg)
-    role, data = draw(st.sampled_from(ros_good_stream(good[:2])))
+    role, data = draw(st.sampled_from(ros_good_stream(good[:2], pose_type)))
     return role, cls, data[: draw(st.integers(0, max(0, len(data) - 1)))]
 
 
-def run_ros(stream: list[tuple[str, bytes]], hostile: list[tuple[int, str, bytes]]) -> tuple[list, list, dict]:
+def run_ros(stream: list[tuple[str, bytes]], hostile: list[tuple[int, str, bytes]], pose_type: str = "odometry"
+            ) -> tuple[list, list, dict]:
     """Feed ``stream`` to a RosIngest with ``hostile`` messages inserted (before stream position p);
     (frames handed on, poses handed on, drops by reason)."""
     from h3edge.io.ros import RosConfig
@@ -352,7 +379,7 @@ def run_ros(stream: list[tuple[str, bytes]], hostile: list[tuple[int, str, bytes
         m = protocol.decode_frame(data)
         frames.append((m.timestamp_ns, m.color.tobytes(), m.depth.tobytes(), m.intrinsics, m.frame_name))
 
-    ing = RosIngest(RosConfig(base_to_camera="identity", world_frame="odom"), frame,
+    ing = RosIngest(RosConfig(base_to_camera="identity", world_frame="odom", pose_type=pose_type), frame,
                     lambda t, m: poses.append((t, m.round(9).tobytes())), lambda c, m: None)
     handlers = {r: ing.handler(r) for r in ("color", "depth", "camera_info", "pose")}
     extra = collections.defaultdict(list)
@@ -413,19 +440,29 @@ def main(argv: list[str] | None = None) -> dict:
     def query_requests(item):
         queries[(item[0], parse_or_refuse(*item))] += 1
 
-    ros_stream = ros_good_stream(good)
-    ros_frames, ros_poses, _ = run_ros(ros_stream, [])
     ros_tally: collections.Counter = collections.Counter()
     ros_runs = {"n": 0}
 
-    @settings(max_examples=args.examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
-    @given(st.lists(st.tuples(st.integers(0, len(ros_stream)), hostile_ros(good)), min_size=1, max_size=8))
-    def ros_messages(items):
-        got_frames, got_poses, drops = run_ros(ros_stream, [(p, role, data) for p, (role, _, data) in items])
-        ros_runs["n"] += 1
-        ros_tally.update((role, cls) for _, (role, cls, _) in items)
-        assert got_frames == ros_frames and got_poses == ros_poses
-        assert "ros_internal_error" not in drops, drops
+    def ros_fuzzer(pose_type: str):
+        stream = ros_good_stream(good, pose_type)
+        want_frames, want_poses, _ = run_ros(stream, [], pose_type)
+
+        @settings(max_examples=args.examples, deadline=None, derandomize=True,
+                  suppress_health_check=list(HealthCheck))
+        @given(st.lists(st.tuples(st.integers(0, len(stream)), hostile_ros(good, pose_type)), min_size=1, max_size=8))
+        def run(items):
+            got_frames, got_poses, drops = run_ros(stream, [(p, role, data) for p, (role, _, data) in items],
+                                                   pose_type)
+            ros_runs["n"] += 1
+            ros_tally.update((role if role != "pose" else pose_type, cls) for _, (role, cls, _) in items)
+            assert got_frames == want_frames and got_poses == want_poses
+            assert "ros_internal_error" not in drops, drops
+
+        return run
+
+    def ros_messages():
+        ros_fuzzer("odometry")()
+        ros_fuzzer("tf")()
 
     parts = set(args.parts.split(","))
     if "frames" in parts:

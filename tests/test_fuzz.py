@@ -91,20 +91,22 @@ def test_hostile_query_requests_are_refused_or_within_the_caps():
     assert parse_or_refuse("mesh", {"aabb": [[0, 0, 0], [huge, 1, 1]]}, None) == "refused"
 
 
-def test_hostile_ros_messages_leave_the_frames_the_good_ones_make(good):
+@pytest.mark.parametrize("pose_type", ["odometry", "tf"])
+def test_hostile_ros_messages_leave_the_frames_the_good_ones_make(good, pose_type):
     """ROS 2 messages that must be refused (unreadable images, images of another size at a good frame's
-    stamp, unusable camera infos, non-finite or non-rotation poses, truncated messages) interleaved
-    with a camera's good colour, depth, camera info and odometry: the ROS ingest hands on exactly the
-    frames and poses the good messages alone make, and counts each hostile one as a drop."""
-    stream = ros_good_stream(good)
-    frames, poses, _ = run_ros(stream, [])
+    stamp, unusable camera infos, non-finite or non-rotation poses, TF messages whose robot link is
+    broken or absent among up to 2,000 others, truncated messages) interleaved with a camera's good
+    colour, depth, camera info and odometry / TF: the ROS ingest hands on exactly the frames and poses
+    the good messages alone make, and raises nothing."""
+    stream = ros_good_stream(good, pose_type)
+    frames, poses, _ = run_ros(stream, [], pose_type)
     assert len(frames) == len(good) and len(poses) == len(good)
     seen: collections.Counter = collections.Counter()
 
     @SETTINGS
-    @given(st.lists(st.tuples(st.integers(0, len(stream)), hostile_ros(good)), min_size=1, max_size=6))
+    @given(st.lists(st.tuples(st.integers(0, len(stream)), hostile_ros(good, pose_type)), min_size=1, max_size=6))
     def run(items):
-        got_frames, got_poses, drops = run_ros(stream, [(p, role, data) for p, (role, _, data) in items])
+        got_frames, got_poses, drops = run_ros(stream, [(p, role, data) for p, (role, _, data) in items], pose_type)
         seen.update(cls for _, (_, cls, _) in items)
         assert got_frames == frames and got_poses == poses
         assert "ros_internal_error" not in drops, drops
