@@ -258,6 +258,18 @@ def test_depth_from_its_own_camera_is_registered_live_with_the_extrinsics():
     assert len(sink.frames) == 3 and dict(ing.drops) == {"ros_size_mismatch": 1}  # the odd one, aged out
 
 
+def test_empty_frame_ids_are_taken_only_when_said_so():
+    """Issue [4/5] deliver 4: a recording whose messages carry empty frame ids (RealSense ROS 1): an
+    odometry of an empty child frame is refused by default and taken with ``base_frame=""``."""
+    msg = ros.serialize(ros.odometry_message(_pose(3), 5, "", ""))
+    ing, sink = _ingest()
+    ing.handler("pose")(msg)
+    assert not sink.poses and ing.drops["ros_frame_id"] == 1
+    ing, sink = _ingest(base_frame="")
+    ing.handler("pose")(msg)
+    assert len(sink.poses) == 1 and not ing.drops
+
+
 def test_tf_messages_take_only_the_base_transform():
     ing, sink = _ingest(pose_type="tf", world_frame="odom")
     base = _pose(5)
