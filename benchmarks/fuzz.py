@@ -480,19 +480,21 @@ def main(argv: list[str] | None = None) -> dict:
               "wire": {f"{k} | {v}": n for (k, v), n in sorted(wire.items())},
               "queries": {f"{k} | {v}": n for (k, v), n in sorted(queries.items())},
               "ros": {f"{k} | {v}": n for (k, v), n in sorted(ros_tally.items())}}
-    lines = [f"Differential fuzzer ({args.parts}): {result['runs']} runs, {result['hostile_frames']} hostile frames "
-             "interleaved "
-             f"with 4 good ones, {result['wire_messages']} hostile wire messages; the map after every run equal to "
-             "the good frames' alone: held.", "", "| class | refused as | inputs |", "|---|---|---|"]
-    lines += [f"| {k} | {how} | {n} |" for (k, how), n in sorted(tally.items())]
-    lines += ["", "| wire message | outcome | inputs |", "|---|---|---|"]
+    lines = [f"Differential fuzzer ({args.parts})."]
+    if "frames" in parts:
+        lines += ["", f"{result['runs']} runs, {result['hostile_frames']} hostile frames interleaved with 4 good ones; "
+                  "the map after every run equal to the good frames' alone: held.", "",
+                  "| class | refused as | inputs |", "|---|---|---|"]
+        lines += [f"| {k} | {how} | {n} |" for (k, how), n in sorted(tally.items())]
+    lines += ["", f"{sum(wire.values())} hostile wire messages (ProtocolError or a valid message, nothing else):",
+              "", "| wire message | outcome | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(wire.items())]
     lines += ["", f"{sum(queries.values())} hostile query requests through the service's parsers (anything but a "
               "refusal or a request within the caps would have failed the run):", "",
               "| query | outcome | inputs |", "|---|---|---|"]
     lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(queries.items())]
     lines += ["", f"ROS: {ros_runs['n']} runs, {sum(ros_tally.values())} hostile ROS 2 messages interleaved with a "
-              "camera's good colour, depth, camera info and odometry (4 frames); the frames and poses the ROS "
+              "camera's good colour, depth, camera info and odometry or TF (4 frames); the frames and poses the ROS "
               "ingest handed on equal to the good messages' alone in every run:", "",
               "| topic | class | messages |", "|---|---|---|"]
     lines += [f"| {k} | {v} | {n} |" for (k, v), n in sorted(ros_tally.items())]
