@@ -26,6 +26,7 @@ import numpy as np
 import zenoh
 
 from benchmarks.mapping import open_dataset
+from benchmarks.service import _rss_mb
 from h3edge.apps.demo import ServiceProcess, wait_drained
 from h3edge.io import ros
 from h3edge.io.protocol import Keys
@@ -35,17 +36,6 @@ from h3edge.serving.client import query
 from h3edge.sim.publish import publish_ros_sequence
 
 log = logging.getLogger("benchmarks.ros_flood")
-
-
-def _rss_mb(pid: int) -> tuple[float, float]:
-    """(current RSS, peak RSS) in MB of a process, from /proc."""
-    cur = peak = 0.0
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            cur = int(line.split()[1]) / 1024
-        elif line.startswith("VmHWM:"):
-            peak = int(line.split()[1]) / 1024
-    return cur, peak
 
 
 def main(argv: list[str] | None = None) -> int:

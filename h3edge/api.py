@@ -29,6 +29,7 @@ import trimesh
 
 from h3edge.errors import InputError
 from h3edge.geometry.camera import Intrinsics
+from h3edge.io.distance_types import slice_cells
 from h3edge.io.sequence import Frame
 from h3edge.mapping.background import BackgroundTraining
 from h3edge.mapping.distance import DistanceSample, DistanceSlice, distance_slice, signed_distance
@@ -464,8 +465,7 @@ def _slice(view: MapView, z: float, lo, hi, resolution: float) -> DistanceSlice:
         raise InputError("slice needs lo = (xmin, ymin) < hi = (xmax, ymax)")
     if not (resolution > 0 and np.isfinite([z, *lo, *hi]).all()):
         raise InputError("slice needs a finite z, corners and a positive resolution")
-    with np.errstate(over="ignore"):
-        cells = float(np.ceil((hi[0] - lo[0]) / resolution)) * float(np.ceil((hi[1] - lo[1]) / resolution))
+    cells = slice_cells(lo, hi, resolution)
     if not cells <= MAX_SLICE_CELLS:
         raise InputError(f"a slice of {cells:.4g} cells is more than {MAX_SLICE_CELLS}: a coarser resolution or a "
                          "smaller area")

@@ -30,6 +30,13 @@ class DistanceSlice:
     resolution: float  # metres per cell
 
 
+def slice_cells(lo: tuple[float, float], hi: tuple[float, float], resolution: float) -> float:
+    """How many cells a slice of ``lo``..``hi`` at ``resolution`` has (a float: inf for a box too large to
+    count, never an overflow), to compare with a cap before any is made."""
+    with np.errstate(over="ignore"):
+        return float(np.ceil((hi[0] - lo[0]) / resolution)) * float(np.ceil((hi[1] - lo[1]) / resolution))
+
+
 def slice_grid(z: float, lo: tuple[float, float], hi: tuple[float, float], resolution: float
                ) -> tuple[np.ndarray, tuple[int, int]]:
     """The cell centres (ny * nx, 3) float64 metres of a slice of ``lo``..``hi`` (x, y) at height ``z``,

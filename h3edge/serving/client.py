@@ -101,7 +101,29 @@ def render_request(c2w, width: int = 320, height: int = 240, intrinsics: Intrins
     return payload
 
 
-class Client:
+class SessionUser:
+    """Holds a zenoh session for queries: the one it opened (closed by :meth:`close` and on leaving a
+    ``with`` block) or one it was given (left open)."""
+
+    def __init__(self, config: str | zenoh.Config | None, connect: list[str] | None, mode: str | None,
+                 multicast: bool | None, session: zenoh.Session | None):
+        self._owned = session is None
+        self.session = session if session is not None else open_client_session(config, connect, mode, multicast)
+
+    def close(self) -> None:
+        """Close the zenoh session (when this object opened it)."""
+        if self._owned:
+            self.session.close()
+            self._owned = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Client(SessionUser):
     """Queries to the h3edge service of map ``map_id`` over zenoh.
 
     Usage::
@@ -125,22 +147,9 @@ class Client:
         """``config``: a zenoh JSON5 file or a ``zenoh.Config`` (default: zenoh's defaults: peer,
         multicast scouting); ``connect`` / ``mode`` / ``multicast`` override it. ``session``: an
         open session to use instead (the client then does not close it)."""
+        super().__init__(config, connect, mode, multicast, session)
         self.keys = Keys.for_map(map_id)
         self.timeout = timeout
-        self._owned = session is None
-        self.session = session if session is not None else open_client_session(config, connect, mode, multicast)
-
-    def close(self) -> None:
-        """Close the zenoh session (when the client opened it)."""
-        if self._owned:
-            self.session.close()
-            self._owned = False
-
-    def __enter__(self) -> Client:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def _ask(self, key: str, payload: dict | bytes | None = None, params: str = "") -> bytes:
         return query(self.session, key, payload, params, self.timeout)

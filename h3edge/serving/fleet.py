@@ -32,9 +32,18 @@ import numpy as np
 import zenoh
 
 from h3edge.geometry.camera import Intrinsics, invert_pose, rigid_error
-from h3edge.io.distance_types import FREE, INSIDE, NEAR, UNKNOWN, DistanceSlice, slice_from_sample, slice_grid
+from h3edge.io.distance_types import (
+    FREE,
+    INSIDE,
+    NEAR,
+    UNKNOWN,
+    DistanceSlice,
+    slice_cells,
+    slice_from_sample,
+    slice_grid,
+)
 from h3edge.io.protocol import Keys, decode_frame
-from h3edge.serving.client import RemoteError, open_client_session, query, read_npz, render_request
+from h3edge.serving.client import RemoteError, SessionUser, query, read_npz, render_request
 
 FLEET_STATUS_KEY = "h3edge/*/status"
 
@@ -316,8 +325,7 @@ def fleet_slice(session: zenoh.Session, z: float, lo: tuple[float, float], hi: t
     lo, hi = (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
     if not (np.isfinite([z, *lo, *hi, resolution]).all() and resolution > 0 and lo[0] < hi[0] and lo[1] < hi[1]):
         raise ValueError("fleet slice needs a finite z, lo < hi and a positive resolution")
-    with np.errstate(over="ignore"):
-        cells = float(np.ceil((hi[0] - lo[0]) / resolution)) * float(np.ceil((hi[1] - lo[1]) / resolution))
+    cells = slice_cells(lo, hi, resolution)
     if not cells <= max_cells:
         raise ValueError(f"a fleet slice of {cells:.4g} cells exceeds {max_cells}: a coarser resolution or a smaller "
                          "area")
@@ -459,7 +467,7 @@ def fleet_mesh(session: zenoh.Session, resolution: int | None = None, aabb=None,
     return FleetMesh({mid: got[mid] for mid in asks if mid in got}, missing, skipped)
 
 
-class Fleet:
+class Fleet(SessionUser):
     """Every h3edge service on a zenoh network, asked as one map in the site frame the fleet shares.
 
     Usage::
@@ -486,21 +494,8 @@ class Fleet:
         scouting); ``connect`` / ``mode`` / ``multicast`` override it. ``timeout``: seconds a fan-out
         may take in all, the status query included (a mesh: at least 30). ``session``: an open
         session to use instead (not closed by the fleet)."""
+        super().__init__(config, connect, mode, multicast, session)
         self.timeout = timeout
-        self._owned = session is None
-        self.session = session if session is not None else open_client_session(config, connect, mode, multicast)
-
-    def close(self) -> None:
-        """Close the zenoh session (when the fleet opened it)."""
-        if self._owned:
-            self.session.close()
-            self._owned = False
-
-    def __enter__(self) -> Fleet:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def status(self) -> list[dict]:
         """Every map that answers: ``{"map_id", "status"}`` (its status document), sorted by id."""

@@ -11,6 +11,7 @@ import numpy as np
 
 from h3edge.errors import QueryError
 from h3edge.geometry.camera import Intrinsics
+from h3edge.io.distance_types import slice_cells
 from h3edge.io.protocol import MAX_SIDE, ProtocolError, pose_from_json
 
 MESH_FORMATS = {"ply": "ply", "glb": "gltf-binary", "obj": "obj"}  # format -> model/<mime subtype>
@@ -166,8 +167,7 @@ class SliceRequest:
             raise QueryError("slice aabb must be x0,y0,x1,y1 with x0 < x1 and y0 < y1")
         if not 0.005 <= res <= 10.0:
             raise QueryError(f"slice resolution must be 0.005..10 m, got {res:g}")
-        with np.errstate(over="ignore"):  # a box of +-1e308 m is inf cells wide: refused below, never an overflow
-            cells = float(np.ceil((v[2] - v[0]) / res)) * float(np.ceil((v[3] - v[1]) / res))
+        cells = slice_cells((v[0], v[1]), (v[2], v[3]), res)  # a box of +-1e308 m: inf cells, refused below
         if not cells <= max_cells:
             raise QueryError(f"a slice of {cells:.4g} cells exceeds this service's cap of {max_cells}: a coarser "
                              "resolution or a smaller aabb")
