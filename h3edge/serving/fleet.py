@@ -187,8 +187,12 @@ class _Place:
 
     def site_box_corners(self) -> np.ndarray:
         """The 8 corners (8, 3) of the voxels' box in the site frame."""
-        c = np.array([[self.box[i, 0], self.box[j, 1], self.box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-        return c @ self.site_from_world[:3, :3].T + self.site_from_world[:3, 3]
+        return _box_corners(self.box) @ self.site_from_world[:3, :3].T + self.site_from_world[:3, 3]
+
+
+def _box_corners(box: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of an axis-aligned box (2, 3)."""
+    return np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
 
 
 def _map_geometry(status: dict) -> tuple[np.ndarray, np.ndarray | None]:
@@ -443,17 +447,16 @@ def fleet_mesh(session: zenoh.Session, resolution: int | None = None, aabb=None,
         payload: dict = {"format": "ply"}
         if resolution is not None:
             payload["resolution"] = int(resolution)
-        if box is not None and pl.box is not None:
-            corners = pl.to_local(np.array([[box[i, 0], box[j, 1], box[k, 2]]
-                                            for i in (0, 1) for j in (0, 1) for k in (0, 1)]))
+        if pl.box is None:  # no voxel yet
+            skipped.append(pl.map_id)
+            continue
+        if box is not None:
+            corners = pl.to_local(_box_corners(box))
             local = np.stack([np.maximum(corners.min(0), pl.box[0]), np.minimum(corners.max(0), pl.box[1])])
             if np.any(local[0] >= local[1]):
                 skipped.append(pl.map_id)
                 continue
             payload["aabb"] = local.tolist()
-        if pl.box is None:
-            skipped.append(pl.map_id)
-            continue
         asks[pl.map_id] = (Keys.for_map(pl.map_id).mesh, payload, "")
     site = {pl.map_id: pl.site_from_world for pl in places}
 
