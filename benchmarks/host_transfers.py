@@ -36,31 +36,40 @@ def lean_torch_settings(profile: str = "orin-agx") -> MapSettings:
 
 
 def count_transfers(settings: MapSettings, frames: list) -> dict:
-    """Integrate each frame and run one training step after it, counting host transfers: the
-    per-frame and per-step totals (after the first two frames: the map's first keyframe and field
-    set-up are not the steady state), and the steady steps' counts by function and by line."""
+    """Integrate each frame and run two training steps after it (the second with no new frame),
+    counting host transfers: the per-frame and per-step totals (after the first two frames: the
+    map's first keyframe and field set-up are not the steady state), the steady steps' counts by
+    function and by line, and the bytes of host arrays they made tensors (uploads), by function,
+    summed over those steps."""
     m = MapEngine(settings)
     m.voxels.compact_lookup = False  # the GPU's fixed-shape lookup, not the CPU's compaction
     per_frame, per_step, step_syncs = [], [], []
     functions: dict[str, list[int]] = {}
     sync_functions: dict[str, list[int]] = {}
     lines: dict[str, int] = {}
+    uploads: dict[str, int] = {}
     for i, f in enumerate(frames):
         with HostTransfers() as integ:
             m.integrate(f)
-        with HostTransfers() as step:
-            trained = m.train_once() is not None
-        if i < 2 or not trained:
+        steps = []
+        for _ in range(2):
+            with HostTransfers() as step:
+                if m.train_once() is not None:
+                    steps.append(step)
+        if i < 2 or not steps:
             continue
         per_frame.append(integ.total)
-        per_step.append(step.total)
-        step_syncs.append(step.syncs)
-        for k, v in step.by_function().items():
-            functions.setdefault(k, []).append(v)
-        for k, v in step.syncs_by_function().items():
-            sync_functions.setdefault(k, []).append(v)
-        for k, v in step.by_line().items():
-            lines[k] = max(lines.get(k, 0), v)
+        for step in steps:
+            per_step.append(step.total)
+            step_syncs.append(step.syncs)
+            for k, v in step.by_function().items():
+                functions.setdefault(k, []).append(v)
+            for k, v in step.syncs_by_function().items():
+                sync_functions.setdefault(k, []).append(v)
+            for k, v in step.by_line().items():
+                lines[k] = max(lines.get(k, 0), v)
+            for k, v in step.uploads_by_function().items():
+                uploads[k] = uploads.get(k, 0) + v
     if not per_step:
         raise RuntimeError("no steady training step ran: more frames needed")
     return {"frames": len(per_frame), "integration": {"max": max(per_frame), "median": statistics.median(per_frame)},
@@ -69,7 +78,9 @@ def count_transfers(settings: MapSettings, frames: list) -> dict:
             "step_syncs_by_function": {k: max(v) for k, v in
                                        sorted(sync_functions.items(), key=lambda kv: -max(kv[1]))},
             "step_by_function": {k: max(v) for k, v in sorted(functions.items(), key=lambda kv: -max(kv[1]))},
-            "step_by_line": dict(sorted(lines.items(), key=lambda kv: -kv[1]))}
+            "step_by_line": dict(sorted(lines.items(), key=lambda kv: -kv[1])),
+            "steps": len(per_step), "frame_pixels": int(frames[0].depth.size),
+            "step_uploads_by_function": dict(sorted(uploads.items(), key=lambda kv: -kv[1]))}
 
 
 def _markdown(result: dict, profile: str) -> str:
@@ -83,6 +94,12 @@ def _markdown(result: dict, profile: str) -> str:
                 f"of the data): {result['step_syncs']['max']} (median {result['step_syncs']['median']}).", "",
             "| step: function | syncs |", "|---|---|"]
     out += [f"| `{k}` | {v} |" for k, v in result["step_syncs_by_function"].items()]
+    out += ["", f"Host arrays made tensors in those {result['steps']} steps, {result['frame_pixels']} pixels a frame "
+                f"(on CUDA copies up; on this CPU views: `cell_votes.py:on_device` is a view of all the votes here, "
+                f"on CUDA it sends the rows marked since the last step; `voxels.py:device_index` goes up when "
+                f"voxels were added; `device_frames.py:_tensor`: a frame's images for the ray draw, once):", "",
+            "| step: function | bytes |", "|---|---|"]
+    out += [f"| `{k}` | {v} |" for k, v in result["step_uploads_by_function"].items()]
     return "\n".join(out) + "\n"
 
 

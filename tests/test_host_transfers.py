@@ -30,6 +30,12 @@ def test_integration_makes_no_host_transfer_and_the_step_stays_in_its_budget(tin
     assert not over, f"new host transfers in the training step: {over} (lines: {result['step_by_line']})"
     assert result["step"]["max"] <= sum(STEP_BUDGET.values())
     assert result["step_syncs"]["max"] <= STEP_SYNCS, result["step_syncs_by_function"]
+    # the rays are drawn on the device from frames' images uploaded once (h3edge.mapping.device_frames): at
+    # most twice a frame (the newest frame's step, then as a keyframe), RGB + depth + valid counts + edges
+    uploads = result["step_uploads_by_function"]
+    assert "h3edge/mapping/engine.py:_sample_rays" not in uploads, uploads
+    assert uploads.get("h3edge/mapping/device_frames.py:_tensor", 0) <= 2 * result["frames"] * (
+        result["frame_pixels"] * (3 + 4 + 8) + 64), uploads
 
 
 def test_the_counter_sees_a_transfer_in_h3edge_code_and_ignores_others():

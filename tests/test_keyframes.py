@@ -137,3 +137,50 @@ def test_stored_frame_without_depth_draws_nothing():
     kf = StoredFrame.of(np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5), np.float32), np.eye(4),
                         Intrinsics(5, 4, 5.0, 5.0, 2.5, 2.0))
     assert kf.n_valid == 0 and len(kf.draw(10, np.random.default_rng(0))[0]) == 0
+
+
+@pytest.mark.parametrize("quantised", [True, False])
+def test_device_frame_draws_as_the_host_does_without_a_host_transfer(quantised):
+    """The torch backend's ray draw (h3edge.mapping.device_frames): a keyframe's images kept on the
+    device draw every valid pixel, uniformly, and only those (a frame whose pixel count is not a
+    multiple of the chunk, valid pixels last and first too); each with the colour, depth and ray
+    the host path gives it; no host transfer."""
+    import torch
+
+    from h3edge.geometry.camera import pixel_rays_camera
+    from h3edge.mapping.device_frames import CHUNK, DeviceFrame
+    from h3edge.profiling.host_transfers import HostTransfers
+
+    kf, color, depth = _stored()
+    flat = depth.reshape(-1).copy()
+    flat[:3] = 0.0
+    flat[-1] = 1.25  # the padded chunk's last pixel valid
+    depth = flat.reshape(depth.shape)
+    from h3edge.mapping.keyframes import StoredFrame
+
+    a = 0.7
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    pose[:3, 3] = [1.0, -2.0, 0.5]
+    kf = StoredFrame.of(color, depth, pose, kf.intrinsics)
+    assert depth.size % CHUNK  # the last chunk is padded
+    dev = torch.device("cpu")
+    df = (DeviceFrame.upload(kf.color, kf.depth_q, kf.depth_unit, kf.n_valid, kf.pose, kf.intrinsics, dev)
+          if quantised else DeviceFrame.upload(color, depth, 0.0, int((depth > 0).sum()), kf.pose, kf.intrinsics, dev))
+    valid = np.flatnonzero(depth.reshape(-1) > 0)
+    g = torch.Generator().manual_seed(3)
+    with HostTransfers() as ht:
+        pix = df.draw(200 * len(valid), g)
+        o, d, z, c = df.rays(pix)
+    assert ht.total == 0 and ht.syncs == 0
+    pix = pix.numpy()
+    assert np.isin(pix, valid).all()
+    counts = np.bincount(pix, minlength=depth.size)[valid]
+    assert counts.min() > 0 and counts.std() / counts.mean() < 0.15  # uniform, the last pixel too
+    hp, hrgb, hz = kf.at(pix)
+    assert np.allclose(c.numpy() * 255.0, hrgb) and np.allclose(z.numpy(), hz if quantised else depth.reshape(-1)[pix])
+    rot = kf.pose[:3, :3].T.astype(np.float32)
+    assert np.allclose(d.numpy(), pixel_rays_camera(kf.intrinsics).reshape(-1, 3)[pix] @ rot, atol=1e-5)
+    assert np.allclose(o.numpy(), kf.pose[:3, 3])
+    none = DeviceFrame.upload(color, np.zeros_like(depth), 0.0, 0, kf.pose, kf.intrinsics, dev)
+    assert len(none.draw(10, g)) == 0 and len(df.draw(0, g)) == 0

@@ -43,6 +43,7 @@ from h3edge.geometry.depth_edges import discontinuity_jump, near_side_of_edges
 from h3edge.io.sequence import Frame
 from h3edge.mapping.cell_votes import CellVotes, VoteConfig
 from h3edge.mapping.color_base import ColorBase, ColorBaseConfig
+from h3edge.mapping.device_frames import DeviceFrame
 from h3edge.mapping.field import Field, FieldConfig
 from h3edge.mapping.free_space import FreeSpace, FreeSpaceConfig
 from h3edge.mapping.gradient import color_gradient
@@ -187,6 +188,7 @@ class ImageFrame:
     pix: np.ndarray  # int32 flat indices of the valid-depth pixels
     _edges: dict = dataclasses.field(default_factory=dict, repr=False)  # as StoredFrame's
     base_depth: np.ndarray | None = dataclasses.field(default=None, repr=False)  # what the colour base fuses
+    _on_device: dict = dataclasses.field(default_factory=dict, repr=False)  # as StoredFrame's
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``n`` valid pixels drawn uniformly with replacement: flat indices, colours, depths (as
@@ -663,15 +665,23 @@ class MapEngine:
     def _sample_rays(self, frames: list[ImageFrame | StoredFrame]) -> RayBatch:
         """Rays drawn evenly from ``frames`` (``rays_per_iteration``), and with
         ``train.surface_color_points`` as many more pixels per frame back-projected to their
-        measured surface points (:func:`~h3edge.mapping.trainer.surface_color_loss`)."""
+        measured surface points (:func:`~h3edge.mapping.trainer.surface_color_loss`). On the torch
+        backend drawn on the device from the frames' images kept there
+        (:mod:`h3edge.mapping.device_frames`), else on the host."""
         n_each = max(1, self.cfg.rays_per_iteration // len(frames))
         n_edge = int(round(self.cfg.edge_rays * n_each))
         n_surf = self.train_cfg.surface_color_points // len(frames)
-        o, d, z, c, sp, sc = [], [], [], [], [], []
         step = self.cfg.edge_radius + 1  # an outline's jump reaches across the rim clean_depth left out
+
+        def edges_of(f: ImageFrame | StoredFrame) -> np.ndarray:
+            return f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
+                                 self.cfg.edge_rays_near_too)
+
+        if self.voxels.device_lookup:
+            return self._draw_on_device(frames, n_each, n_edge, n_surf, edges_of)
+        o, d, z, c, sp, sc = [], [], [], [], [], []
         for f in frames:
-            edges = (f.edge_pixels(self.cfg.edge_rays_radius, self.edge_jump(f.intrinsics, step), step,
-                                   self.cfg.edge_rays_near_too) if n_edge else np.zeros(0, np.int32))
+            edges = edges_of(f) if n_edge else np.zeros(0, np.int32)
             # the rest uniformly, also what a frame without edges falls short of
             parts = [f.draw(n_each - (n_edge if len(edges) else 0), self.rng)]
             if len(edges):
@@ -691,6 +701,39 @@ class MapEngine:
         t = lambda a, dt=torch.float32: torch.from_numpy(np.ascontiguousarray(np.concatenate(a))).to(dev, dt)  # noqa: E731
         surface = (t(sp), t(sc) / 255.0) if sp else (None, None)
         return RayBatch(t(o), t(d), t(z), t(c) / 255.0, *surface)
+
+    def _draw_on_device(self, frames: list[ImageFrame | StoredFrame], n_each: int, n_edge: int, n_surf: int,
+                        edges_of) -> RayBatch:
+        """:meth:`_sample_rays` on the device: the same draw (uniform among valid pixels, ``n_edge``
+        of them among a frame's edge pixels where it has any) from :meth:`_on_device`'s images, with
+        the map's torch generator; no host transfer, nothing uploaded but frames not seen before."""
+        g, parts, surface = self.generator, [], []
+        for f in frames:
+            df = self._on_device(f)
+            edges = df.edge_pixels("training rays", lambda f=f: edges_of(f)) if n_edge else None
+            pix = [df.draw(n_each - (n_edge if edges is not None and len(edges) else 0), g)]
+            if edges is not None and len(edges):
+                pix.append(edges[torch.randint(0, len(edges), (n_edge,), generator=g, device=edges.device)])
+            parts.append(df.rays(torch.cat(pix)))
+            if n_surf:
+                so, sd, sz, scol = df.rays(df.draw(n_surf, g))
+                surface.append((so + sd * sz[:, None], scol))
+        o, d, z, c = (torch.cat(a) for a in zip(*parts))
+        sp, sc = (torch.cat(a) for a in zip(*surface)) if surface else (None, None)
+        return RayBatch(o, d, z, c, sp, sc)
+
+    def _on_device(self, f: ImageFrame | StoredFrame) -> DeviceFrame:
+        """``f``'s images on the map's device (:class:`DeviceFrame`), uploaded on its first draw and
+        kept with the frame (a keyframe's until it is pruned)."""
+        got = f._on_device.get(self.device)
+        if got is None:
+            if isinstance(f, StoredFrame):
+                got = DeviceFrame.upload(f.color, f.depth_q, f.depth_unit, f.n_valid, f.pose, f.intrinsics,
+                                         self.device)
+            else:
+                got = DeviceFrame.upload(f.color, f.depth, 0.0, len(f.pix), f.pose, f.intrinsics, self.device)
+            f._on_device[self.device] = got
+        return got
 
     # ---------------------------------------------------------------- queries
     def view(self) -> MapView:

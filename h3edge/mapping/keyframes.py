@@ -52,6 +52,9 @@ class StoredFrame:
     # flat indices of the far side of the depth edges, per setting: computed on first use
     # (:meth:`edge_pixels`), not stored in checkpoints
     _edges: dict = field(default_factory=dict, repr=False, compare=False)
+    # torch device -> the images there for training's ray draw (h3edge.mapping.device_frames, the torch
+    # backend): uploaded on first use, not stored in checkpoints
+    _on_device: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def of(cls, color: np.ndarray, depth: np.ndarray, pose: np.ndarray, intrinsics: Intrinsics) -> StoredFrame:
@@ -105,7 +108,8 @@ class StoredFrame:
     @property
     def nbytes(self) -> int:
         edges = sum(e.nbytes for e in self._edges.values())
-        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + edges
+        on_device = sum(d.own_bytes for d in self._on_device.values())
+        return self.color.nbytes + self.depth_q.nbytes + 8 * 16 + edges + on_device
 
 
 def edge_pixels(cache: dict, depth: np.ndarray, radius: int, jump: float, step: int, near_too: bool) -> np.ndarray:

@@ -6,6 +6,7 @@ keyframes (the keyframe set's byte cap)."""
 from __future__ import annotations
 
 from h3edge.mapping.color_base import ROW_BYTES
+from h3edge.mapping.device_frames import CHUNK
 from h3edge.mapping.engine import RAY_TABLES, MapSettings
 from h3edge.mapping.residual_check import KEPT_BYTES
 
@@ -59,5 +60,11 @@ def memory_plan(settings: MapSettings, budget_mb: int, keyframe_bytes: int, fram
 
 
 def keyframe_bytes(settings: MapSettings, frame_pixels: int = 640 * 480) -> int:
-    """Bytes one keyframe of ``frame_pixels`` keeps (:class:`~h3edge.mapping.keyframes.StoredFrame`)."""
-    return frame_pixels * (3 + 2) + 4096  # RGB, uint16 depth; voxel ids and scores
+    """Bytes one keyframe of ``frame_pixels`` keeps (:class:`~h3edge.mapping.keyframes.StoredFrame`),
+    with, on the torch backend, its copy for the ray draw on the device
+    (:class:`~h3edge.mapping.device_frames.DeviceFrame`: the valid-pixel counts; on a GPU its images
+    too)."""
+    kept = frame_pixels * (3 + 2) + 4096  # RGB, uint16 depth; voxel ids and scores
+    if settings.field.backend == "torch":
+        kept += -(-frame_pixels // CHUNK) * 8 + (0 if settings.mapper.device == "cpu" else frame_pixels * (3 + 2))
+    return kept

@@ -12,6 +12,10 @@ Counted apart (``syncs``): the operators whose output size depends on the data, 
 the host waits for the device to learn it, with no copy of the data itself: ``nonzero``,
 ``unique``, ``masked_select`` and indexing (reading or writing) with a boolean mask.
 
+Counted apart too (``uploads``): host arrays made tensors (``torch.from_numpy``, ``torch.as_tensor``
+of a numpy array) from h3edge code, in bytes by function: on CUDA each goes up to the device (a
+copy, no stall of the device's work).
+
 Usage::
 
     with HostTransfers() as ht:
@@ -19,6 +23,7 @@ Usage::
     ht.total, ht.by_line()   # {"h3edge/mapping/trainer.py:128 cpu": 1, ...}
     ht.by_function()         # {"h3edge/mapping/cell_votes.py:sample_free": 3, ...}
     ht.syncs, ht.syncs_by_function()   # the data-dependent shapes, apart
+    ht.uploads_by_function()           # {"h3edge/mapping/device_frames.py:_tensor": 921600, ...} bytes
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import torch
 
 _PACKAGE = str(Path(__file__).resolve().parents[1])  # .../h3edge
@@ -52,6 +58,7 @@ class HostTransfers:
         self._saved: dict[tuple[object, str], object] = {}
         self.sync_functions: collections.Counter[str] = collections.Counter()  # "path:function" -> syncs
         self._last: dict[int, tuple[str, str]] = {}  # thread id -> the last (site, kind): cpu then numpy
+        self.upload_functions: collections.Counter[str] = collections.Counter()  # "path:function" -> bytes
 
     @property
     def total(self) -> int:
@@ -70,6 +77,10 @@ class HostTransfers:
     def syncs_by_function(self) -> dict[str, int]:
         """``"path:function"`` -> syncs, largest first."""
         return dict(self.sync_functions.most_common())
+
+    def uploads_by_function(self) -> dict[str, int]:
+        """``"path:function"`` -> bytes of host arrays made tensors there (module docstring), largest first."""
+        return dict(self.upload_functions.most_common())
 
     def by_function(self) -> dict[str, int]:
         """``"path:function"`` -> count, largest first (stable across edits that move lines)."""
@@ -102,6 +113,11 @@ class HostTransfers:
         if where is not None:
             self.sync_functions[where[1]] += 1
 
+    def _record_upload(self, array: object) -> None:
+        where = self._site()
+        if where is not None and isinstance(array, np.ndarray):
+            self.upload_functions[where[1]] += array.nbytes
+
     def _patch(self, owner: object, name: str, wrapper_of) -> None:
         original = getattr(owner, name)
         self._saved[(owner, name)] = original
@@ -132,6 +148,14 @@ class HostTransfers:
         for name in _SYNC_METHODS:
             self._patch(torch.Tensor, name, sync)
             self._patch(torch, name, sync)
+        def upload(original):
+            def wrapper(data, *args, **kwargs):
+                self._record_upload(data)
+                return original(data, *args, **kwargs)
+            return wrapper
+
+        for name in ("from_numpy", "as_tensor"):
+            self._patch(torch, name, upload)
         self._patch(torch.Tensor, "__getitem__", sync_if_bool)
         self._patch(torch.Tensor, "__setitem__", sync_if_bool)
         return self
