@@ -73,3 +73,47 @@ def test_the_cuda_check_runs_where_no_gpu_is(tmp_path):
     run = res["cuda_run"]
     assert run["device"] == "cpu" and run["step_host_transfers_max"] == 1 and res["bounds"]["one_host_transfer_a_step"]
     assert {"integration", "idle_training"} <= set(run["timings_ms"]) and run["plan_mb"] > 0
+
+
+def test_training_turns_and_exclusive_callers_order_the_training_stream(tiny_scene):
+    """On CUDA a step's kernels go to a stream of its own (h3edge.mapping.training_stream); what keeps
+    them in order with the default stream's is called where it must be: every training turn (ray
+    draw, update) starts after the default stream's work, with the priors marked as used there, and
+    records its end; every exclusive caller waits for that end; the whole step runs in the stream's
+    context. A recorder stands in for CUDA's streams here."""
+    import contextlib
+
+    from h3edge.mapping.engine import MapEngine
+
+    calls = []
+
+    class Recorder:
+        @contextlib.contextmanager
+        def active(self):
+            calls.append("enter")
+            yield
+            calls.append("leave")
+
+        def follow_default(self, shared=()):
+            calls.append(("follow", tuple(t is m.voxels.priors for t in shared)))
+
+        def mark_turn_end(self):
+            calls.append("mark")
+
+        def before_exclusive_work(self):
+            calls.append("wait")
+
+    frames = [f for _, f in zip(range(3), open_sequence(tiny_scene))]
+    m = MapEngine(lean_torch_settings("orin-agx"))
+    m._stream = Recorder()
+    m.integrate(frames[0])
+    assert calls == ["wait"]  # integration holds the map: after the last update
+    calls.clear()
+    assert m.train_once() is not None
+    assert calls[0] == "enter" and calls[-1] == "leave" and "wait" not in calls
+    turns = calls[1:-1]
+    assert len(turns) >= 4 and turns == [("follow", (True,)), "mark"] * (len(turns) // 2)  # draw, update, ...
+    calls.clear()
+    with m.exclusive():
+        pass
+    assert calls == ["wait"]

@@ -62,6 +62,7 @@ from h3edge.mapping.texture_grid import QuasiHeteroTexture
 from h3edge.mapping.texture_patterns import TextureConfig, TexturePatterns
 from h3edge.mapping.threads import size_pools
 from h3edge.mapping.trainer import RayBatch, TrainConfig, Trainer
+from h3edge.mapping.training_stream import TrainingStream
 from h3edge.mapping.view import MapView
 from h3edge.mapping.voxels import PriorAdam, VoxelConfig, VoxelMap, pack, unpack
 from h3edge.profiling.timing import Timings
@@ -259,6 +260,7 @@ class MapEngine:
         self._texture_pending: tuple[ImageFrame, np.ndarray] | None = None  # left for the training thread
         self._lock = threading.RLock()  # the map: integration, training steps, snapshots
         self._turns = threading.Condition()  # exclusive() callers waiting go before training steps
+        self._stream = TrainingStream(self.device)  # train_once's CUDA stream; no-ops on a CPU
         self._waiting = 0
         self._helper: concurrent.futures.ThreadPoolExecutor | None = None  # integration's second track
         # called on the mapping thread after every training step: where a service hands out
@@ -517,17 +519,23 @@ class MapEngine:
             self._waiting -= 1
             self._turns.notify_all()
         try:
+            self._stream.before_exclusive_work()  # on CUDA: after the last step's update (training_stream)
             yield self
         finally:
             self._lock.release()
 
     @contextlib.contextmanager
     def _training_turn(self):
-        """The map lock for one training step, taken only when no :meth:`exclusive` caller waits."""
+        """The map lock for one training step, taken only when no :meth:`exclusive` caller waits (on
+        CUDA the step's stream ordered after the default stream's work, :mod:`~h3edge.mapping.training_stream`)."""
         with self._turns:
             self._turns.wait_for(lambda: self._waiting == 0)
         with self._lock:
-            yield
+            self._stream.follow_default((self.voxels.priors,))
+            try:
+                yield
+            finally:
+                self._stream.mark_turn_end()
 
     def _prepare(self, frame: Frame) -> tuple[ImageFrame, np.ndarray]:
         """The frame with cleaned depth and its valid pixels, and its world points (H, W, 3)."""
@@ -611,6 +619,10 @@ class MapEngine:
     def train_once(self) -> dict | None:
         """One :meth:`train_between_frames` step whatever ``train_between_frames`` says (the
         library's :meth:`h3edge.MapEngine.train`); None when there is nothing to train on yet."""
+        with self._stream.active():  # on CUDA the training stream (h3edge.mapping.training_stream)
+            return self._train_once()
+
+    def _train_once(self) -> dict | None:
         if self._texture_pending is not None:
             self._determine_pending_texture()
         t0 = time.perf_counter()
