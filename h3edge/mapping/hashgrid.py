@@ -27,6 +27,7 @@ Neither produces a dense gradient: backward yields the touched rows and their gr
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 from h3edge.mapping.sparse_adam import lazy_adam_rows
-from h3edge.mapping.trilinear import CORNERS, corner_weights
+from h3edge.mapping.trilinear import corner_weights, corners_on
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -74,6 +75,16 @@ class HashFunction:
     dense: bool = True  # coarse levels that fit the table are indexed densely
 
 
+@functools.lru_cache(maxsize=32)
+def _level_tables(spec: HashGridSpec, dense: bool, n_levels: int, device: torch.device, dtype: torch.dtype
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``n_levels`` coarsest levels' scales (``dtype``) and dense sides (int64, 0: hashed) on
+    ``device``, made once (constants: no copy up a call)."""
+    scales = torch.tensor(spec.level_scales()[:n_levels], dtype=dtype, device=device)
+    sides = torch.tensor((spec.level_dense() if dense else np.zeros(spec.levels, np.int64))[:n_levels], device=device)
+    return scales, sides
+
+
 def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction = HashFunction(),
                          levels: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Row indices (N, L', 8) int64 into the (L*T, F) table and trilinear weights (N, L', 8) of the
@@ -82,13 +93,12 @@ def corner_indices_torch(xn: torch.Tensor, spec: HashGridSpec, fn: HashFunction 
     dev = xn.device
     n_levels = spec.levels if levels is None else levels
     primes, d = fn.primes, fn.offsets
-    scales = torch.tensor(spec.level_scales()[:n_levels], dtype=xn.dtype, device=dev)
-    dense = torch.tensor((spec.level_dense() if fn.dense else np.zeros(spec.levels, np.int64))[:n_levels], device=dev)
+    scales, dense = _level_tables(spec, fn.dense, n_levels, dev, xn.dtype)
     p = xn[:, None, :] * scales[None, :, None] + 0.5  # (N, L, 3)
     g = torch.floor(p)
     f = p - g
     g = g.long()
-    v = g[:, :, None, :] + torch.from_numpy(CORNERS).to(dev)[None, None]  # (N, L, 8, 3)
+    v = g[:, :, None, :] + corners_on(dev)[0][None, None]  # (N, L, 8, 3)
     w = corner_weights(f)  # (N, L, 8)
     side = dense[None, :, None]
     dense_idx = v[..., 0] + side * (v[..., 1] + side * v[..., 2])

@@ -13,14 +13,25 @@ Example::
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
 CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
 
 
+@functools.lru_cache(maxsize=8)
+def corners_on(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """:data:`CORNERS` on ``device``, int64 (8, 3) and bool (8, 3): made once a device, as
+    constants (a copy up every call would be a stall on CUDA: a copy from pageable memory waits for
+    its stream's work)."""
+    c = torch.from_numpy(CORNERS).to(device)
+    return c, c.bool()
+
+
 def corner_weights(frac: torch.Tensor) -> torch.Tensor:
     """Weights (..., 8) of the 8 corners for fractional positions ``frac`` (..., 3) in [0, 1]."""
-    upper = torch.from_numpy(CORNERS).to(frac.device).bool()  # (8, 3)
+    upper = corners_on(frac.device)[1]  # (8, 3)
     f = frac.unsqueeze(-2)  # (..., 1, 3)
     return torch.where(upper, f, 1 - f).prod(-1)

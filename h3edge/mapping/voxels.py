@@ -34,7 +34,7 @@ import torch
 
 from h3edge.geometry.camera import Intrinsics, backproject, project
 from h3edge.mapping.sparse_adam import lazy_adam_rows
-from h3edge.mapping.trilinear import CORNERS, corner_weights
+from h3edge.mapping.trilinear import CORNERS, corner_weights, corners_on
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
@@ -487,7 +487,7 @@ def _across_faces(index: DeviceIndex, g: torch.Tensor, a: torch.Tensor, on: torc
     axis; ``g`` its floor cell, ``a`` its rounded coordinates), in :func:`cell_of`'s order, and that
     voxel's corner; the others unchanged."""
     for c in range(8):
-        bits = torch.from_numpy(CORNERS[c].astype(bool)).to(g.device)
+        bits = corners_on(g.device)[1][c]
         cand = torch.where(on, torch.where(bits, a, a - 1), g)
         found = index.find(cand)
         take = (vox < 0) & ~(bits & ~on).any(1) & (found >= 0)

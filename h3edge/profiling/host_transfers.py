@@ -12,9 +12,9 @@ Counted apart (``syncs``): the operators whose output size depends on the data, 
 the host waits for the device to learn it, with no copy of the data itself: ``nonzero``,
 ``unique``, ``masked_select`` and indexing (reading or writing) with a boolean mask.
 
-Counted apart too (``uploads``): host arrays made tensors (``torch.from_numpy``, ``torch.as_tensor``
-of a numpy array) from h3edge code, in bytes by function: on CUDA each goes up to the device (a
-copy, no stall of the device's work).
+Counted apart too (``uploads``): host data made tensors (``torch.from_numpy``, ``torch.as_tensor``,
+``torch.tensor`` of anything but a tensor) from h3edge code, in bytes by function: on CUDA each goes
+up to the device (a copy from pageable memory: the host waits for the stream's work before it).
 
 Usage::
 
@@ -113,10 +113,13 @@ class HostTransfers:
         if where is not None:
             self.sync_functions[where[1]] += 1
 
-    def _record_upload(self, array: object) -> None:
+    def _record_upload(self, data: object) -> None:
         where = self._site()
-        if where is not None and isinstance(array, np.ndarray):
-            self.upload_functions[where[1]] += array.nbytes
+        if where is not None and not isinstance(data, torch.Tensor):
+            try:
+                self.upload_functions[where[1]] += np.asarray(data).nbytes
+            except (TypeError, ValueError):
+                self.upload_functions[where[1]] += 1
 
     def _patch(self, owner: object, name: str, wrapper_of) -> None:
         original = getattr(owner, name)
@@ -154,7 +157,7 @@ class HostTransfers:
                 return original(data, *args, **kwargs)
             return wrapper
 
-        for name in ("from_numpy", "as_tensor"):
+        for name in ("from_numpy", "as_tensor", "tensor"):
             self._patch(torch, name, upload)
         self._patch(torch.Tensor, "__getitem__", sync_if_bool)
         self._patch(torch.Tensor, "__setitem__", sync_if_bool)
