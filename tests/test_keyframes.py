@@ -184,3 +184,22 @@ def test_device_frame_draws_as_the_host_does_without_a_host_transfer(quantised):
     assert np.allclose(o.numpy(), kf.pose[:3, 3])
     none = DeviceFrame.upload(color, np.zeros_like(depth), 0.0, 0, kf.pose, kf.intrinsics, dev)
     assert len(none.draw(10, g)) == 0 and len(df.draw(0, g)) == 0
+
+
+def test_the_memory_plan_counts_a_keyframes_copy_on_the_device():
+    """On the torch backend a keyframe's images are also kept where training draws its rays: on a
+    GPU its RGB and depth (5 bytes a pixel) and valid-pixel counts (8 bytes a 32-pixel chunk), on a
+    CPU (shared arrays) the counts only (``auto`` counts as a GPU: at most); the numba backend keeps
+    none."""
+    import dataclasses
+
+    from h3edge.mapping.engine import MapSettings
+    from h3edge.mapping.memory_plan import keyframe_bytes
+
+    s = MapSettings()
+    on_cpu = dataclasses.replace(s, field=dataclasses.replace(s.field, backend="torch"),
+                                 mapper=dataclasses.replace(s.mapper, device="cpu"))
+    on_gpu = dataclasses.replace(on_cpu, mapper=dataclasses.replace(s.mapper, device="cuda"))
+    px = 640 * 480
+    assert keyframe_bytes(on_cpu, px) - keyframe_bytes(s, px) == px // 32 * 8
+    assert keyframe_bytes(on_gpu, px) - keyframe_bytes(s, px) == px * 5 + px // 32 * 8
