@@ -63,7 +63,7 @@ class DeviceFrame:
             d = _tensor(np.asarray(depth, np.uint16).reshape(-1).view(np.int16), device)
         else:
             d = _tensor(np.asarray(depth, np.float32).reshape(-1), device)
-        valid = d != 0
+        valid = d != 0 if unit > 0 else d > 0  # int16 bits: steps above 32767 read negative
         pad = (-len(valid)) % CHUNK
         if pad:
             valid = torch.cat([valid, valid.new_zeros(pad)])
@@ -91,7 +91,8 @@ class DeviceFrame:
         chunk = torch.searchsorted(self.prefix, rank, right=True) - 1  # prefix[c] <= rank < prefix[c + 1]
         start = chunk * CHUNK
         cand = (start[:, None] + torch.arange(CHUNK, device=dev)).clamp(max=len(self.depth) - 1)
-        running = (self.depth[cand] != 0).cumsum(1)  # a padded slot repeats the last pixel: never reached
+        near = self.depth[cand]
+        running = (near != 0 if self.unit > 0 else near > 0).cumsum(1)  # a padded slot repeats the last pixel
         within = (running > (rank - self.prefix[chunk])[:, None]).to(torch.int8).argmax(1)
         return start + within
 
