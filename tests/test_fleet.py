@@ -281,9 +281,15 @@ def test_fleet_behind_a_router_answers_as_one_map_and_keeps_checkpoints(tiny_sce
                     q.undeclare()
             assert took < 8.0 and {"robot-b", "slow"} <= set(d.missing) and "robot-a" in d.maps, (d.missing, took)
             assert (d.state != UNKNOWN).mean() > 0.3  # the answering maps' answers still merged
-    finally:
+    finally:  # every process goes, whatever one of them does
         for s in [*services.values(), whole]:
-            s.stop()
+            try:
+                s.stop()
+            except Exception:
+                s.proc.kill()
         for p in procs:
             p.terminate()
-            p.wait(30)
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
