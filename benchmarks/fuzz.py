@@ -239,8 +239,6 @@ QUERY_CAPS = {"max_pixels": 640 * 480, "max_points": 1000, "max_cells": 4_000_00
 def parse_or_refuse(kind: str, req: dict, raw: bytes | None) -> str:
     """'ok' when the service's parser takes the request (and what it gives is within the caps and
     finite), 'refused' on a QueryError; anything else propagates (a crash the fuzzer reports)."""
-    import numpy as np
-
     from h3edge.errors import QueryError
     from h3edge.serving.queries import MeshRequest, NamedRequest, RenderRequest, SdfRequest, SliceRequest
 
@@ -416,9 +414,11 @@ def main(argv: list[str] | None = None) -> dict:
     tally: collections.Counter = collections.Counter()
     wire: collections.Counter = collections.Counter()
     runs = {"n": 0}
+    # every fuzzer: the same number of examples, reproducible, no deadline (a run maps frames)
+    fuzzed = settings(max_examples=args.examples, deadline=None, derandomize=True,
+                      suppress_health_check=list(HealthCheck))
 
-    @settings(max_examples=args.examples, deadline=None, derandomize=True,
-              suppress_health_check=list(HealthCheck))
+    @fuzzed
     @given(st.lists(st.tuples(st.integers(0, len(good)), hostile_frame(good[1])), min_size=1, max_size=8))
     def frames(items):
         m = run_interleaved(good, [(p, k, a) for p, (k, a) in items], tally)
@@ -428,14 +428,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     frame_bytes, pose_bytes = wire_messages(good)
 
-    @settings(max_examples=args.examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @fuzzed
     @given(hostile_bytes(frame_bytes, pose_bytes))
     def messages(item):
         wire[(item[0], decode_or_refuse(*item))] += 1
 
     queries: collections.Counter = collections.Counter()
 
-    @settings(max_examples=args.examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @fuzzed
     @given(hostile_query())
     def query_requests(item):
         queries[(item[0], parse_or_refuse(*item))] += 1
@@ -447,8 +447,7 @@ def main(argv: list[str] | None = None) -> dict:
         stream = ros_good_stream(good, pose_type)
         want_frames, want_poses, _ = run_ros(stream, [], pose_type)
 
-        @settings(max_examples=args.examples, deadline=None, derandomize=True,
-                  suppress_health_check=list(HealthCheck))
+        @fuzzed
         @given(st.lists(st.tuples(st.integers(0, len(stream)), hostile_ros(good, pose_type)), min_size=1, max_size=8))
         def run(items):
             got_frames, got_poses, drops = run_ros(stream, [(p, role, data) for p, (role, _, data) in items],
