@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from h3edge.geometry.camera import Intrinsics, look_at
+from h3edge.geometry.camera import Intrinsics, backproject, look_at
 from h3edge.mapping.trilinear import CORNERS
 from h3edge.mapping.voxels import VoxelConfig, VoxelMap, lookup, pack, points_by_voxel, unpack
 
@@ -189,16 +189,38 @@ def test_locate_follows_its_rule_on_faces_edges_and_corners():
     assert (frac >= 0).all() and (frac <= 1).all()
 
 
+def test_allocation_lists_the_voxels_every_nth_valid_pixel_observes():
+    """The keyframe policy's observed voxels come from allocation's pass over the points: the same
+    as locating every 4th valid pixel's point, with holes, a sloped surface and refused voxels."""
+    rng = np.random.default_rng(5)
+    vm = VoxelMap(VoxelConfig(min_points=3, max_voxels=40))
+    slope = (WALL_Y + np.linspace(-0.4, 0.6, INTR.width, dtype=np.float32))[None, :].repeat(INTR.height, 0)
+    for depth in (wall_depth(), slope):
+        depth = depth.copy()
+        depth[rng.random(depth.shape) < 0.3] = 0.0  # holes: the stride counts valid pixels only
+        pose = look_at(np.array([0.1, 0.0, 0.05]), np.array([0.3, 1.0, 0.1]))
+        new, observed = vm.allocate_observing(depth, INTR, pose, every=4)
+        pts = backproject(depth, INTR, pose).reshape(-1, 3)
+        vox, _ = vm.locate(pts[np.flatnonzero(depth.reshape(-1) > 0)[::4]])
+        assert np.array_equal(observed, np.unique(vox[vox >= 0])) and len(observed)
+    assert vm.refused > 0  # the cap left some of the frame's voxels out: they are not observed
+
+
 def test_points_by_voxel_counts_and_sums_like_a_sort():
     rng = np.random.default_rng(2)
     pts = np.concatenate([rng.normal(0, 3, (50_000, 3)), rng.normal(1, 0.05, (20_000, 3))])  # > 2^13 voxels
     pts[rng.random(len(pts)) < 0.1, rng.integers(0, 3)] = np.nan  # invalid rows are skipped
-    keys, counts, sums = points_by_voxel(pts, 0.1)
+    keys, counts, sums, picked = points_by_voxel(pts, 0.1, every=3)
     ok = np.isfinite(pts).all(1)
     ref_keys, inv, ref_counts = np.unique(pack(np.floor(pts[ok] / 0.1)), return_inverse=True, return_counts=True)
     assert np.array_equal(keys, ref_keys) and np.array_equal(counts, ref_counts)
     ref_sums = np.stack([np.bincount(inv, weights=pts[ok][:, k]) for k in range(3)], -1)
     assert np.allclose(sums, ref_sums, rtol=1e-12, atol=1e-9)
+    # every third valid row, counted by voxel
+    assert np.array_equal(picked, np.bincount(inv[::3], minlength=len(keys)))
+    assert np.array_equal(points_by_voxel(pts, 0.1)[3], counts)  # every row
+    with pytest.raises(ValueError):
+        points_by_voxel(pts, 0.1, every=0)
     with pytest.raises(ValueError):
         points_by_voxel(np.array([[1e6, 0.0, 0.0]]), 0.1)
     assert len(points_by_voxel(np.full((4, 3), np.nan), 0.1)[0]) == 0

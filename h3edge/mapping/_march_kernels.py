@@ -98,14 +98,16 @@ def ray_cell_keys(rays, reach, rot, trans, voxel_size):
 
 
 @nb.njit(cache=True, nogil=True)
-def voxel_point_stats(pts, vs, hkeys, counts, sums):
+def voxel_point_stats(pts, vs, hkeys, counts, sums, every, picked):
     """Group points (metres; rows with a non-finite coordinate are skipped) by the voxel that
     contains them, through the empty table ``hkeys`` (power-of-two length): per slot, the voxel's
-    packed key, its point count and the sum of its points. Returns the slots used, -1 when the
-    table passed half full (the caller retries with a larger one) or -2 when a point lies outside
-    the +-2^20 voxel range of the packed keys."""
+    packed key, its point count, the sum of its points and in ``picked`` how many of them are among
+    every ``every``-th point kept (the 0th, ``every``-th, ... of the finite rows). Returns the
+    slots used, -1 when the table passed half full (the caller retries with a larger one) or -2 when
+    a point lies outside the +-2^20 voxel range of the packed keys."""
     mask = hkeys.shape[0] - 1
     used = 0
+    tick = 0  # finite rows to skip before the next picked one
     last_key, s = np.int64(-1), 0  # the previous point's voxel and slot: neighbouring pixels share voxels
     for i in range(pts.shape[0]):
         x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
@@ -131,6 +133,10 @@ def voxel_point_stats(pts, vs, hkeys, counts, sums):
         sums[s, 0] += x
         sums[s, 1] += y
         sums[s, 2] += z
+        if tick == 0:  # this row is one of every ``every``-th
+            picked[s] += 1
+            tick = every
+        tick -= 1
     return used
 
 @nb.njit(inline="always")

@@ -61,17 +61,21 @@ def lookup(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return np.where(sorted_keys[i] == keys, i, -1)
 
 
-def points_by_voxel(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def points_by_voxel(points: np.ndarray, voxel_size: float, every: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The voxels that hold ``points`` (N, 3; rows with NaN are skipped): their packed keys
-    (sorted), point counts and coordinate sums (K, 3). One pass through a hash table."""
+    (sorted), point counts, coordinate sums (K, 3) and how many of their points are among every
+    ``every``-th point (of the rows not skipped, from the first). One pass through a hash table."""
     from h3edge.mapping import _march_kernels as k
 
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
     pts = np.ascontiguousarray(points, np.float64)
     cap = 1 << 14
     while True:
         hkeys = np.full(cap, -1, np.int64)
-        counts, sums = np.zeros(cap, np.int64), np.zeros((cap, 3), np.float64)
-        used = k.voxel_point_stats(pts, float(voxel_size), hkeys, counts, sums)
+        counts, sums, picked = np.zeros(cap, np.int64), np.zeros((cap, 3), np.float64), np.zeros(cap, np.int64)
+        used = k.voxel_point_stats(pts, float(voxel_size), hkeys, counts, sums, int(every), picked)
         if used == -2:
             raise ValueError("voxel coordinate outside the +-2^20 range")
         if used >= 0:
@@ -80,7 +84,7 @@ def points_by_voxel(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, 
     slots = np.flatnonzero(hkeys >= 0)
     order = np.argsort(hkeys[slots])
     slots = slots[order]
-    return hkeys[slots], counts[slots], sums[slots]
+    return hkeys[slots], counts[slots], sums[slots], picked[slots]
 
 
 class KeyIndex:
@@ -234,10 +238,19 @@ class VoxelMap:
                  ) -> np.ndarray:
         """Allocate voxels seen by a frame; returns the keys of the newly created voxels.
         ``points``: the frame's world back-projection (H, W, 3), when the caller already has it."""
+        return self.allocate_observing(depth, intr, c2w, points)[0]
+
+    def allocate_observing(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray,
+                           points: np.ndarray | None = None, every: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`allocate`, and the ids (sorted, int64) of the allocated voxels that hold one of
+        every ``every``-th valid pixel's point (row-major, from the first): what the frame observes,
+        from the same pass over its points (as :meth:`locate` places those points, but for a point
+        within ``1e-5`` voxels of a face, which :meth:`locate` may give the voxel across it)."""
         pts = (backproject(depth, intr, c2w) if points is None else points).reshape(-1, 3)
-        keys, counts, sums = points_by_voxel(pts, self.cfg.voxel_size)
+        keys, counts, sums, picked = points_by_voxel(pts, self.cfg.voxel_size, every)
         if len(keys) == 0:
-            return np.zeros(0, np.int64)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        observed_keys = keys[picked > 0]
         ok = counts >= self.cfg.min_points
         # mean point inside each voxel, in voxel units relative to its corner
         frac = sums / (counts[:, None] * self.cfg.voxel_size) - unpack(keys)
@@ -269,7 +282,8 @@ class VoxelMap:
             todo = self.voxels.find(new)
         if len(todo):
             self._init_priors(todo, vid, sdf, valid)
-        return new
+        observed = self.voxels.find(observed_keys)
+        return new, np.sort(observed[observed >= 0])
 
     @property
     def trained(self) -> np.ndarray:
