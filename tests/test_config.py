@@ -33,6 +33,7 @@ def test_profile_by_name():
     ("[mapper]\nedge_rays = 1.5\n", "edge_rays is a share"),
     ("[train]\ncarve_behind = false\n", "unknown key 'carve_behind'"),  # deleted (D49-1)
     ("[mapper]\nedge_max_incidence = 90.0\n", r"edge_max_incidence must be in \[0, 90\)"),
+    ("[mapper]\nobserve_stride = 0\n", "observe_stride is a pixel stride"),
 ])
 def test_bad_profiles_are_named(tmp_path, text, msg):
     p = tmp_path / "profile.toml"

@@ -136,6 +136,8 @@ class MapperConfig:
             raise ValueError(f"edge_rays is a share of the rays, in [0, 1], got {self.edge_rays}")
         if not 0.0 <= self.edge_max_incidence < 90.0:
             raise ValueError(f"edge_max_incidence must be in [0, 90) degrees, got {self.edge_max_incidence}")
+        if self.observe_stride < 1:
+            raise ValueError(f"observe_stride is a pixel stride, >= 1, got {self.observe_stride}")
         if self.threads < 0 or not 0 <= self.training_nice <= 19:
             raise ValueError(f"threads must be >= 0 (0: every core) and training_nice in [0, 19], got {self.threads} "
                              f"and {self.training_nice}")
