@@ -245,7 +245,10 @@ class VoxelMap:
         """:meth:`allocate`, and the ids (sorted, int64) of the allocated voxels that hold one of
         every ``every``-th valid pixel's point (row-major, from the first): what the frame observes,
         from the same pass over its points (as :meth:`locate` places those points, but for a point
-        within ``1e-5`` voxels of a face, which :meth:`locate` may give the voxel across it)."""
+        within ``1e-5`` voxels of a face, which :meth:`locate` may give the voxel across it).
+        ``depth`` float32 (H, W) z-depth in metres (0 = invalid), ``c2w`` (4, 4) camera-to-world
+        (OpenCV optical), ``points`` its world back-projection (H, W, 3) metres if the caller has it;
+        host numpy arrays. Returns (new voxel keys int64 (K,), observed voxel ids int64 (M,))."""
         pts = (backproject(depth, intr, c2w) if points is None else points).reshape(-1, 3)
         keys, counts, sums, picked = points_by_voxel(pts, self.cfg.voxel_size, every)
         if len(keys) == 0:
