@@ -233,17 +233,25 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
                     xcb, ycb = (ub + 0.5 - cx) / fx, (vb + 0.5 - cy) / fy
                     bnx, bny, bnz = _pixel_normal(depth, ub, vb, db, xcb, ycb, fx, fy, cx, cy, normal_px, cell)
                     bpx, bpy, bpz = xcb * db, ycb * db, db
+        # the first cell's centre in this camera, and one cell's step along each world axis
+        ox = (bx + 0.5) * cell - trans[0]
+        oy = (by + 0.5) * cell - trans[1]
+        oz = (bz + 0.5) * cell - trans[2]
+        x0 = ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]
+        y0 = ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]
+        z0 = ox * rot[0, 2] + oy * rot[1, 2] + oz * rot[2, 2]
+        sxx, sxy, sxz = cell * rot[0, 0], cell * rot[0, 1], cell * rot[0, 2]
+        syx, syy, syz = cell * rot[1, 0], cell * rot[1, 1], cell * rot[1, 2]
+        szx, szy, szz = cell * rot[2, 0], cell * rot[2, 1], cell * rot[2, 2]
         for c in range(64):
             row = brow * 64 + c
             # the cell centre in this camera
-            ox = (bx + (c & 3) + 0.5) * cell - trans[0]
-            oy = (by + ((c >> 2) & 3) + 0.5) * cell - trans[1]
-            oz = (bz + (c >> 4) + 0.5) * cell - trans[2]
-            zc = ox * rot[0, 2] + oy * rot[1, 2] + oz * rot[2, 2]
+            a, b, g = c & 3, (c >> 2) & 3, c >> 4
+            zc = z0 + a * sxz + b * syz + g * szz
             if not zc > 0.0:
                 continue
-            xf = ox * rot[0, 0] + oy * rot[1, 0] + oz * rot[2, 0]
-            yf = ox * rot[0, 1] + oy * rot[1, 1] + oz * rot[2, 1]
+            xf = x0 + a * sxx + b * syx + g * szx
+            yf = y0 + a * sxy + b * syy + g * szy
             iz = 1.0 / zc
             u = math.floor(fx * xf * iz + cx)
             v = math.floor(fy * yf * iz + cy)
