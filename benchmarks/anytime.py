@@ -281,7 +281,7 @@ def bench_dataset(name: str, seq, settings, variants: dict, args, title: str, th
         shown = mode == "live" and st is settings  # the profile's own live run
         rows, summary = replay_h3edge(frames, st, hz, args.queue, marks, views, threshold, tsdf["meshes"], mode,
                                       (seq, picture) if shown else None, renders if shown else None, truth)[:2]
-        gc.collect()  # the run's map goes before the next run starts: held, it slowed the next one (D53-18)
+        gc.collect()  # the run's map goes before the next run starts (held, the next run measured slower: D53-18)
         if not args.components:
             del summary["components"]
         runs[label], summaries[label] = rows, summary
