@@ -45,6 +45,27 @@ def test_a_frame_votes_free_in_front_and_inside_just_behind_its_depth():
     assert cv.seen_free(*vm.locate(PROBES)).tolist() == [True, False, False, False]
 
 
+@pytest.mark.parametrize("interleave", [2, 3])
+def test_interleaved_frames_vote_every_cell_once_between_them(interleave):
+    """With ``interleave`` k, k consecutive frames vote on disjoint cell sets that together are
+    every cell: k frames of the same view leave the votes one full frame leaves."""
+    vm = wall_map()
+    depth = np.full((INTR.height, INTR.width), 2.0, np.float32)
+    depth[10:20, 5:40] = 1.93  # a step: cells on either side of it vote differently
+    full = CellVotes(VoteConfig(cell=0.01, margin=0.03), voxel_size=0.1, behind=0.05)
+    full.mark(vm, depth, INTR, FRONT)
+    split = CellVotes(VoteConfig(cell=0.01, margin=0.03, interleave=interleave), voxel_size=0.1, behind=0.05)
+    voted = (full.votes != 0).sum()
+    for _ in range(interleave):
+        before = split.votes.copy() if split.rows else np.zeros_like(full.votes)
+        split.mark(vm, depth, INTR, FRONT)
+        assert abs((split.votes != before).sum() / voted - 1 / interleave) < 0.05  # each frame its share
+    assert np.array_equal(split.votes, full.votes) and voted > 1000
+    split.mark(vm, depth, INTR, FRONT)  # the cycle starts again: the first set votes a second time
+    assert ((split.votes == 2 * full.votes) | (split.votes == full.votes)).all()
+    assert (np.abs(split.votes) == 2).sum() > 0
+
+
 def test_the_majority_of_frames_decides_behind_a_thin_wall():
     """The cell 1.5 cm behind the front view's wall: inside for that view, seen through by a side
     view that measures 4 m past it. One vote each is a tie (not free); a second side frame decides."""

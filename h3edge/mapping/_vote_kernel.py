@@ -15,30 +15,36 @@ from h3edge.mapping._trilinear_kernel import corner_weight
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, margin, behind):
+def vote_cells(corners, ids, votes, depth, rot, trans, fx, fy, cx, cy, cell, n, margin, behind, stride, phase):
     """For voxel ``ids[i]`` with its minimum corner ``corners[i]`` (world, m), each of its n^3
     cells (centre at ``corner + (a + 0.5, b + 0.5, c + 0.5) * cell``, flat index ``(a * n + b) * n
     + c``): with ``s`` = the measured z-depth at the pixel the centre projects to minus the centre's
     z, ``votes[ids[i], cell] += 1`` where ``s > margin`` (seen free) and ``-= 1`` where ``-behind <=
     s <= 0`` (just behind the measured surface), saturating at +-127. ``rot``, ``trans``: world to
-    camera. Pixels with no valid depth (0, NaN, inf) leave the cell as it is."""
+    camera. Pixels with no valid depth (0, NaN, inf) leave the cell as it is. Only the cells with
+    ``(a + b + c) % stride == phase`` vote (``stride`` 1, ``phase`` 0: every cell)."""
     h, w = depth.shape
     for i in nb.prange(len(ids)):
         row = ids[i]
         # the first cell's centre in camera coordinates, and one cell's step along each world axis
         p0 = corners[i] + 0.5 * cell
         c0 = rot[:, 0] * p0[0] + rot[:, 1] * p0[1] + rot[:, 2] * p0[2] + trans
+        step_x, step_y, step_z = stride * cell * rot[0, 2], stride * cell * rot[1, 2], stride * cell * rot[2, 2]
         for a in range(n):
             for b in range(n):
                 x = c0[0] + cell * (a * rot[0, 0] + b * rot[0, 1])
                 y = c0[1] + cell * (a * rot[1, 0] + b * rot[1, 1])
                 z = c0[2] + cell * (a * rot[2, 0] + b * rot[2, 1])
                 base = (a * n + b) * n
-                for c in range(n):
-                    if c:
-                        x += cell * rot[0, 2]
-                        y += cell * rot[1, 2]
-                        z += cell * rot[2, 2]
+                first = (phase - a - b) % stride  # the first cell of this row the frame votes on
+                x += first * cell * rot[0, 2]
+                y += first * cell * rot[1, 2]
+                z += first * cell * rot[2, 2]
+                for c in range(first, n, stride):
+                    if c != first:
+                        x += step_x
+                        y += step_y
+                        z += step_z
                     if z <= 1e-3:
                         continue
                     inv = 1.0 / z

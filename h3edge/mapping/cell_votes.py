@@ -19,7 +19,9 @@ that saw a cell free outvote a few that put it just behind a surface, and noise 
 surface a little too far now and then does not carve it.
 
 Cost: one int8 a cell (1,000 bytes a 10 cm voxel at 1 cm cells); per frame one parallel pass over
-the cells of the voxels in the view frustum (:mod:`h3edge.mapping._vote_kernel`).
+the cells of the voxels in the view frustum (:mod:`h3edge.mapping._vote_kernel`), or over one in
+``interleave`` of them, the next frames over the others (at 30 Hz consecutive frames see nearly the
+same cells; x86-cpu votes on half a frame, D53-19).
 
 Usage::
 
@@ -53,6 +55,9 @@ class VoteConfig:
     """m beyond a cell the measured depth must lie for a free vote (noise, pose error)"""
     min_votes: int = 1
     """net votes (free minus just-behind) for a cell to count as seen free"""
+    interleave: int = 1
+    """frames that share one full vote: each votes on the cells whose indices in the voxel (a, b, c) have (a + b + c) %
+    interleave equal to its count % interleave; 1: every cell every frame (paper: no votes)"""
     points: int = 0
     """points per training step drawn in cells seen free, where the field must not read inside (weights.seen_free); 0:
     the votes only take band targets away"""
@@ -64,6 +69,8 @@ class VoteConfig:
             raise ValueError(f"votes.margin must be >= 0 m, got {self.margin}")
         if not 1 <= self.min_votes <= 127:
             raise ValueError(f"votes.min_votes must be in 1..127, got {self.min_votes}")
+        if self.interleave < 1:
+            raise ValueError(f"votes.interleave must be >= 1, got {self.interleave}")
         if self.points < 0:
             raise ValueError(f"votes.points must be >= 0, got {self.points}")
 
@@ -90,6 +97,7 @@ class CellVotes:
         self.max_voxels = max_voxels  # the map's voxel cap: storage never grows past it
         self._store = np.zeros((0, self.n ** 3), np.int8)  # rows by voxel id, capacity >= rows
         self.rows = 0
+        self._frames = 0  # frames marked: which of the interleaved cell sets the next frame votes on
         # the votes on a training device other than the host (:meth:`on_device`): the mirror and the
         # rows marked since it was last brought up to date
         self._mirror: torch.Tensor | None = None
@@ -153,10 +161,11 @@ class CellVotes:
         if len(ids):
             k.vote_cells(np.ascontiguousarray(corners[ids]), ids, self._store, np.ascontiguousarray(depth, np.float32),
                          rot, trans, intr.fx, intr.fy, intr.cx, intr.cy, self.cfg.cell, self.n,
-                         self.cfg.margin, self.behind)
+                         self.cfg.margin, self.behind, self.cfg.interleave, self._frames % self.cfg.interleave)
             with self._dirty_lock:  # after the write: a mirror update that copied a half-written row copies it again
                 if self._mirror is not None:
                     self._dirty.append(ids)
+        self._frames += 1
         return len(ids)
 
     def on_device(self, device: torch.device) -> torch.Tensor:
