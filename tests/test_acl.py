@@ -267,3 +267,4 @@ def test_site_router_lets_each_robot_write_and_answer_only_as_itself(tmp_path, t
             except subprocess.TimeoutExpired:
                 p.kill()
         logs.close()
+        print((tmp_path / "procs.log").read_text()[-6000:])  # pytest shows it when the test fails

@@ -27,23 +27,48 @@ class RemoteError(RuntimeError):
     """The service answered with an error reply (the message is the service's)."""
 
 
+#: Pauses (s) before asking again when the network ends a query at once with no answer. A client's
+#: zenoh session routes a query only to the queryables it has learnt of, and that view can lag the
+#: network's for a moment (eclipse-zenoh/zenoh#2767): one at-once empty answer is not yet "nobody".
+_EMPTY_ANSWER_RETRY_S = (0.1, 0.2, 0.4, 0.8)
+#: An empty answer within this many seconds of asking counts as "at once" (the network answered, not a slow service).
+_AT_ONCE_S = 0.25
+
+
 def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None, params: str = "",
           timeout: float = 60.0) -> bytes:
     """One query (``payload``: a JSON object, or raw bytes); the reply's bytes, :class:`RemoteError`
-    on an error reply, TimeoutError on none."""
+    on an error reply, TimeoutError on none. A query the network ends at once with no answer is asked
+    again after 0.1, 0.2, 0.4 and 0.8 s (while that stays under half of ``timeout``) before it says so:
+    no queryable received it, so asking again runs nothing twice."""
     selector = f"{key}?{params}" if params else key
     body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
     encoding = None if body is None else (zenoh.Encoding.APPLICATION_OCTET_STREAM if isinstance(payload, bytes)
                                           else zenoh.Encoding.APPLICATION_JSON)
     start = time.monotonic()
-    for reply in session.get(selector, payload=body, encoding=encoding, timeout=timeout):
-        if reply.ok is not None:
-            return reply.ok.payload.to_bytes()
-        raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
-    waited = time.monotonic() - start
-    if waited < 0.5 * timeout:  # the network answered "nobody" at once: not a slow service
-        raise TimeoutError(f"no reply from {selector}: the query ended after {waited:.1f} s with no answer (no "
+    pauses = iter(_EMPTY_ANSWER_RETRY_S)
+    tries = 0
+    while True:
+        asked = time.monotonic()
+        tries += 1
+        for reply in session.get(selector, payload=body, encoding=encoding, timeout=timeout - (asked - start)):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
+        now = time.monotonic()
+        if now - asked >= _AT_ONCE_S:
+            break
+        pause = next(pauses, None)
+        if pause is None or now + pause - start >= 0.5 * timeout:
+            break
+        time.sleep(pause)
+    waited = now - start
+    if now - asked < _AT_ONCE_S:  # the network answered "nobody" at once: not a slow service
+        asked_n = "once" if tries == 1 else f"{tries} times in {waited:.1f} s"
+        raise TimeoutError(f"no reply from {selector}: the query ended at once with no answer, asked {asked_n} (no "
                            "service serves this key, or an access-control rule of the network denies it)")
+    if waited < 0.9 * timeout:
+        raise TimeoutError(f"no reply from {selector}: the query ended after {waited:.1f} s with no answer")
     raise TimeoutError(f"no reply from {selector} within {timeout:.0f} s (is the service running?)")
 
 
