@@ -144,6 +144,32 @@ def test_every_frame_that_sees_a_cell_near_its_depth_fuses_it_once():
         assert near.all() if trunc == 0.04 else 0 < near.mean() < 1
 
 
+@pytest.mark.parametrize("k", [2, 3])
+def test_interleaved_frames_fuse_every_cell_once_between_them(k):
+    """``interleave`` k: k frames of one view leave exactly the cells (colour, weight, distance) that
+    one frame fusing every cell leaves, each frame its own 1/k of them ((i + j + k) % k), and frame
+    k + 1 starts the round again."""
+    intr = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
+    wall = np.full((intr.height, intr.width), 1.997, np.float32)
+    grey = np.full((intr.height, intr.width, 3), 100, np.uint8)
+    whole = ColorBase(ColorBaseConfig(cell=0.01, stride=1))
+    whole.fuse(grey, wall, intr, FRONT)
+    ijk_whole, rows_whole = held(whole)
+    split = ColorBase(ColorBaseConfig(cell=0.01, stride=1, interleave=k))
+    for i in range(k):
+        split.fuse(grey, wall, intr, FRONT)
+        ijk, rows = held(split)
+        assert set(np.unique(ijk.sum(1) % k).tolist()) == set(range(i + 1))  # the shares fused so far
+        assert (rows[:, 3] == 1).all()
+    order_whole, order = np.lexsort(ijk_whole.T), np.lexsort(ijk.T)
+    assert np.array_equal(ijk_whole[order_whole], ijk[order])
+    assert np.allclose(rows_whole[order_whole], rows[order])
+    split.fuse(grey, wall, intr, FRONT)  # the next round: the first share again
+    ijk, rows = held(split)
+    assert np.array_equal(np.sort(ijk[rows[:, 3] == 2].sum(1) % k), np.zeros((rows[:, 3] == 2).sum()))
+    assert (rows[:, 3] == 2).sum() == (ijk.sum(1) % k == 0).sum()
+
+
 def test_a_block_table_too_small_for_a_frame_grows_and_fuses_it_whole(monkeypatch):
     import h3edge.mapping.color_base as color_base
 
@@ -210,6 +236,8 @@ def test_bad_settings_are_refused_when_the_profile_loads():
         ColorBaseConfig(cell=0.01, stride=0)
     with pytest.raises(ValueError, match="normal_px"):
         ColorBaseConfig(cell=0.01, normal_px=-1)
+    with pytest.raises(ValueError, match="interleave"):
+        ColorBaseConfig(cell=0.01, interleave=0)
 
 
 def test_a_map_with_the_base_and_no_training_renders_like_tsdf_fusion(tiny_scene):

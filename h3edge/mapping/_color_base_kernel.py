@@ -188,7 +188,7 @@ def _pixel_normal(depth, u, v, z, xc, yc, fx, fy, cx, cy, reach, flat):
 # fast maths without assuming finite values: the NaN and infinity checks on depth stay
 @nb.njit(parallel=True, cache=True, nogil=True, fastmath={"contract", "arcp", "afn", "reassoc"})
 def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, cell, band, trunc, max_weight,
-               normal_px):
+               normal_px, stride, phase):
     """Pass two of fusing a frame, as TSDF fusion does: every cell of the blocks ``touched`` whose
     centre projects into a pixel of depth d (``rot``, ``trans``: camera to world) fuses that pixel,
     once a frame: a cell held already where its own z-depth lies within ``trunc`` (m) of d, in front
@@ -205,8 +205,9 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
     from d), the centre's own pixel. (A cell off the surface read at its own centre takes each
     view's colour from a different surface point, up to its distance from the surface times the
     tangent of the view's incidence: a blur, D53-12.) Both as running averages (a row: R, G, B,
-    weight, signed distance) whose weight grows by one a fusion up to ``max_weight``. Returns the
-    cells it made."""
+    weight, signed distance) whose weight grows by one a fusion up to ``max_weight``. Only the cells
+    (i, j, k) with ``(i + j + k) % stride == phase`` fuse (``stride`` 1, ``phase`` 0: every cell).
+    Returns the cells it made."""
     h, w = depth.shape
     same_surface = 2.0 * (band + 1) * cell  # m: a projected pixel's depth this near d is its surface
     reach_new = (band + 0.5) * cell  # m: how near d a new cell's centre lies
@@ -247,6 +248,8 @@ def fuse_cells(touched, bkeys, cells, depth, color, rot, trans, fx, fy, cx, cy, 
             row = brow * 64 + c
             # the cell centre in this camera
             a, b, g = c & 3, (c >> 2) & 3, c >> 4
+            if stride > 1 and (bx + by + bz + a + b + g) % stride != phase:  # (Python's %: never negative)
+                continue
             zc = z0 + a * sxz + b * syz + g * szz
             if not zc > 0.0:
                 continue

@@ -105,6 +105,10 @@ class ColorBaseConfig:
     fuse_edges: bool = False
     """fuse the near side of depth edges too, which ``mapper.edge_radius`` leaves out of the rest of the map (the
     outline of a foreground object); paper: no base (false); D53-11"""
+    interleave: int = 1
+    """frames one round of cell fusion is spread over: a frame fuses the cells (i, j, k) with (i + j + k) %
+    interleave equal to its count % interleave, the next frames the others (its blocks are reached every frame);
+    1: every cell every frame; paper: no base"""
 
     def __post_init__(self) -> None:
         if not self.cell >= 0:
@@ -114,6 +118,8 @@ class ColorBaseConfig:
                              "are required")
         if not self.trunc > 0:
             raise ValueError(f"color_base.trunc must be > 0 m, got {self.trunc}")
+        if self.interleave < 1:
+            raise ValueError(f"color_base.interleave must be >= 1, got {self.interleave}")
 
     @property
     def enabled(self) -> bool:
@@ -133,6 +139,7 @@ class ColorBase:
         self.n = 0  # cells held (weight > 0)
         self.refused = 0  # points of frames whose block the block cap refused
         self._frames = 0  # frames fused (the blocks' touch stamps)
+        self._fused = 0  # frames fused: which of the interleaved cell sets the next frame fuses
         self.nblocks = 0  # blocks held
         self._alloc(min(_MIN_BLOCKS, self.max_blocks))
 
@@ -183,7 +190,9 @@ class ColorBase:
                 break
             self._alloc(min(self.max_blocks, 2 * len(self.bkeys)))
         self.n += fuse_cells(touched[:ntouched], self.bkeys, self.cells, depth, np.ascontiguousarray(color, np.uint8),
-                             rot, trans, fx, fy, cx, cy, c.cell, c.band, c.trunc, c.max_weight, c.normal_px)
+                             rot, trans, fx, fy, cx, cy, c.cell, c.band, c.trunc, c.max_weight, c.normal_px,
+                             c.interleave, self._fused % c.interleave)
+        self._fused += 1
 
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour (N, 3) float32 in [0, 1] at world points (N, 3) metres and whether the base knows
