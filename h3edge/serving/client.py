@@ -39,8 +39,10 @@ def query(session: zenoh.Session, key: str, payload: dict | bytes | None = None,
           timeout: float = 60.0) -> bytes:
     """One query (``payload``: a JSON object, or raw bytes); the reply's bytes, :class:`RemoteError`
     on an error reply, TimeoutError on none. A query the network ends at once with no answer is asked
-    again after 0.1, 0.2, 0.4 and 0.8 s (while that stays under half of ``timeout``) before it says so:
-    no queryable received it, so asking again runs nothing twice."""
+    again after 0.1, 0.2, 0.4 and 0.8 s (while that stays under half of ``timeout``) before it says so.
+    An h3edge service answers every query it takes with a reply or an error reply, so an at-once empty
+    answer reached none, or an access rule of the network dropped its reply (the service's verbs bear
+    being asked twice: a second save within ``save_min_interval_s`` is refused)."""
     selector = f"{key}?{params}" if params else key
     body = payload if isinstance(payload, bytes) else json.dumps(payload).encode() if payload is not None else None
     encoding = None if body is None else (zenoh.Encoding.APPLICATION_OCTET_STREAM if isinstance(payload, bytes)
