@@ -66,6 +66,64 @@ def test_interleaved_frames_vote_every_cell_once_between_them(interleave):
     assert (np.abs(split.votes) == 2).sum() > 0
 
 
+def _reference_votes(votes, corners, depth, c2w, intr, cell, n, margin, behind, stride, phase):
+    """The vote rule cell by cell in numpy (``vote_cells``'s docstring), on a copy of ``votes``."""
+    out = votes.astype(np.int64)
+    idx = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    w2c = np.linalg.inv(c2w)
+    centres = corners[:, None, :] + (idx[None] + 0.5) * cell  # (V, n^3, 3)
+    cam = centres @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(intr.fx * cam[..., 0] * (1.0 / z) + intr.cx)
+        v = np.floor(intr.fy * cam[..., 1] * (1.0 / z) + intr.cy)
+    ok = (z > 1e-3) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height) & (idx.sum(1) % stride == phase)
+    d = np.zeros(z.shape)
+    d[ok] = depth[v[ok].astype(int), u[ok].astype(int)]
+    ok &= (d > 0) & np.isfinite(d)
+    s = d - z
+    out[ok & (s > margin)] += 1
+    out[ok & (s <= 0) & (s >= -behind)] -= 1
+    return np.clip(out, -127, 127).astype(np.int8)
+
+
+def test_the_kernel_votes_as_the_rule_says_cell_by_cell():
+    """The parallel kernel's votes equal the rule's in numpy, on a surface with steps, slopes and
+    holes (0, NaN, inf), from views far, near (voxels around and behind the camera plane) and
+    partly outside, with votes starting at saturation and with interleaved cells."""
+    intr = Intrinsics(96, 72, 60.0, 62.0, 47.3, 35.6)
+    rng = np.random.default_rng(3)
+    vv, uu = np.mgrid[0:72, 0:96]
+    surface = (1.6 + 0.25 * np.sin(uu / 9.0) + 0.002 * uu).astype(np.float32)
+    surface[20:45, 30:60] = 1.1  # a box in front
+    vm = VoxelMap(VoxelConfig(voxel_size=0.1, min_points=1, prior_clamp=1.0))
+    home = look_at(np.zeros(3), np.array([0.1, 1.0, 0.05]))
+    vm.allocate(surface, intr, home)
+    vm.allocate(surface, intr, look_at(np.array([0.3, 0.1, 0.0]), np.array([0.0, 1.6, 0.1])))
+    corners = unpack(vm.voxel_keys).astype(np.float64) * 0.1
+    views = [home,
+             look_at(np.array([-0.4, 0.2, 0.1]), np.array([0.2, 1.8, -0.1])),  # partly outside
+             look_at(np.array([0.05, 1.05, 0.0]), np.array([0.3, 2.5, 0.2])),  # among the voxels
+             look_at(np.array([0.013, 1.9, 0.021]), np.array([0.0, 0.0, 0.0]))]  # back through the map
+    for interleave in (1, 3):
+        cv = CellVotes(VoteConfig(cell=0.01, margin=0.03, interleave=interleave), voxel_size=0.1, behind=0.05)
+        cv.mark(vm, np.zeros_like(surface), intr, home)  # rows for every voxel, no vote
+        cv.votes = rng.choice(np.array([-127, -126, -1, 0, 1, 126, 127], np.int8), size=cv.votes.shape)
+        for i, c2w in enumerate(views * 2):
+            depth = surface * np.float32(1.0 + 0.3 * (i % 3)) + rng.normal(0, 0.01, surface.shape).astype(np.float32)
+            holes = rng.random(surface.shape)
+            depth[holes < 0.04] = 0.0
+            depth[(holes > 0.5) & (holes < 0.51)] = np.nan
+            depth[(holes > 0.6) & (holes < 0.605)] = np.inf
+            depth[:, 70:] = 0.0  # a strip with no depth
+            phase = cv._frames % interleave
+            expect = _reference_votes(cv.votes, corners, depth, c2w, intr, 0.01, cv.n, 0.03, 0.05, interleave, phase)
+            cv.mark(vm, depth, intr, c2w)
+            changed = (expect != cv.votes).sum()
+            assert changed == 0, f"view {i}, interleave {interleave}: {changed} cells differ"
+    assert (cv.votes == 127).sum() > 1000 and ((cv.votes < 0) & (cv.votes > -126)).sum() > 1000
+
+
 def test_the_majority_of_frames_decides_behind_a_thin_wall():
     """The cell 1.5 cm behind the front view's wall: inside for that view, seen through by a side
     view that measures 4 m past it. One vote each is a tie (not free); a second side frame decides."""
