@@ -93,7 +93,7 @@ def test_the_kernel_votes_as_the_rule_says_cell_by_cell():
     partly outside, with votes starting at saturation and with interleaved cells."""
     intr = Intrinsics(96, 72, 60.0, 62.0, 47.3, 35.6)
     rng = np.random.default_rng(3)
-    vv, uu = np.mgrid[0:72, 0:96]
+    uu = np.mgrid[0:72, 0:96][1]  # pixel columns
     surface = (1.6 + 0.25 * np.sin(uu / 9.0) + 0.002 * uu).astype(np.float32)
     surface[20:45, 30:60] = 1.1  # a box in front
     vm = VoxelMap(VoxelConfig(voxel_size=0.1, min_points=1, prior_clamp=1.0))
